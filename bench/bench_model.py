@@ -1,0 +1,125 @@
+"""Model speed: ms per pair of eager torch and ONNX Runtime on the same weights, per preset.
+
+    python bench/bench_model.py                       # presets paper/small/fast, random weights
+    python bench/bench_model.py --presets fast --weights model/weights/ifnet-fast.pt --batches 1 4 8 --points 768 1024
+
+Prints a table and writes docs/benchmarks/model.{md,json}. Random weights time the same
+graph as trained ones. Peak RSS of the process is reported after each run.
+"""
+
+import argparse
+import json
+import resource
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from export.onnx_export import DYNAMIC_AXES, RegistrationGraph, export_onnx, load_checkpoint, ort_session  # noqa: E402
+from model.ifnet import PRESETS, IFNet, preset  # noqa: E402
+
+
+def median_ms(run, repeats: int) -> float:
+    run()  # warm-up
+    times = []
+    for _ in range(repeats):
+        started = time.perf_counter()
+        run()
+        times.append(time.perf_counter() - started)
+    return 1000 * float(np.median(times))
+
+
+def peak_rss_mb() -> float:
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--presets", nargs="+", default=["paper", "small", "fast"], choices=sorted(PRESETS))
+    parser.add_argument("--weights", type=Path, help="trained weights (only with a single preset)")
+    parser.add_argument("--batches", nargs="+", type=int, default=[1, 4])
+    parser.add_argument("--points", nargs="+", type=int, default=[768])
+    parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--repeats", type=int, default=5)
+    parser.add_argument("--skip-eager", action="store_true")
+    parser.add_argument("--out", type=Path, default=Path("docs/benchmarks/model"))
+    args = parser.parse_args()
+    torch.set_num_threads(args.threads)
+
+    rows = []
+    for name in args.presets:
+        if args.weights:
+            model, _ = load_checkpoint(args.weights)
+        else:
+            torch.manual_seed(0)
+            model = IFNet(preset(name)).eval()
+        with tempfile.TemporaryDirectory() as tmp:
+            path = Path(tmp) / "model.onnx"
+            n0 = model.config.num_points
+            export_seconds = export_onnx(
+                RegistrationGraph(model),
+                path,
+                (torch.rand(1, n0, 3), torch.rand(1, n0, 3)),
+                ["source", "target"],
+                ["rotation", "translation"],
+                DYNAMIC_AXES,
+            )
+            size_mb = path.stat().st_size / 1e6
+            session = ort_session(path, args.threads)
+            for n in args.points:
+                for batch in args.batches:
+                    source = np.random.rand(batch, n, 3).astype(np.float32) - 0.5
+                    target = np.random.rand(batch, n, 3).astype(np.float32) - 0.5
+                    feeds = {"source": source, "target": target}
+                    ort_ms = median_ms(lambda s=session, f=feeds: s.run(None, f), args.repeats)
+                    eager_ms = float("nan")
+                    if not args.skip_eager:
+                        with torch.no_grad():
+                            s, t = torch.from_numpy(source), torch.from_numpy(target)
+                            eager_ms = median_ms(lambda m=model, s=s, t=t: m(s, t), args.repeats)
+                    row = {
+                        "preset": name,
+                        "parameters": model.num_parameters(),
+                        "points": n,
+                        "batch": batch,
+                        "ort_ms_per_pair": ort_ms / batch,
+                        "eager_ms_per_pair": eager_ms / batch,
+                        "speedup": eager_ms / ort_ms,
+                        "onnx_mb": size_mb,
+                        "export_s": export_seconds,
+                        "peak_rss_mb": peak_rss_mb(),
+                    }
+                    rows.append(row)
+                    print(
+                        f"{name:6s} N={n:5d} B={batch}: ORT {row['ort_ms_per_pair']:7.1f} ms/pair, eager "
+                        f"{row['eager_ms_per_pair']:7.1f} ms/pair ({row['speedup']:.2f}x), peak RSS "
+                        f"{row['peak_rss_mb']:.0f} MB",
+                        flush=True,
+                    )
+
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    args.out.with_suffix(".json").write_text(json.dumps({"threads": args.threads, "rows": rows}, indent=2))
+    header = "| preset | params | N | batch | ORT ms/pair | eager ms/pair | ORT speed-up | ONNX MB | export s |"
+    lines = [
+        f"Command: `python bench/{Path(__file__).name} {' '.join(sys.argv[1:])}` ({args.threads} threads, "
+        f"median of {args.repeats})",
+        "",
+        header,
+        "|---" * 9 + "|",
+    ]
+    for r in rows:
+        lines.append(
+            f"| {r['preset']} | {r['parameters']:,} | {r['points']} | {r['batch']} | {r['ort_ms_per_pair']:.1f}"
+            f" | {r['eager_ms_per_pair']:.1f} | {r['speedup']:.2f}x | {r['onnx_mb']:.2f} | {r['export_s']:.1f} |"
+        )
+    args.out.with_suffix(".md").write_text("\n".join(lines) + "\n")
+    print(f"wrote {args.out.with_suffix('.md')}")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,1 @@
+"""ONNX export of IFNet with the time-step/iteration loop unrolled, and its self-check."""

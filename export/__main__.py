@@ -1,0 +1,82 @@
+"""Export trained IFNet weights to ONNX, check the file against torch, and only then write it.
+
+python -m export                                   # shipped weights -> service/models/ifnet.onnx
+python -m export --weights runs/fast/checkpoint.pt --output /tmp/ifnet.onnx
+"""
+
+import argparse
+import shutil
+import sys
+import tempfile
+from pathlib import Path
+
+import onnx
+import torch
+
+from export.onnx_export import (
+    DEFAULT_OUTPUT,
+    DEFAULT_WEIGHTS,
+    DYNAMIC_AXES,
+    RegistrationGraph,
+    compare_with_torch,
+    export_onnx,
+    load_checkpoint,
+    metadata_for,
+    ort_session,
+)
+from model.training.data import evaluation_pairs
+
+
+def parse_args(argv: list[str] | None) -> argparse.Namespace:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--weights", type=Path, default=DEFAULT_WEIGHTS, help="checkpoint or shipped weights (.pt)")
+    parser.add_argument("--output", type=Path, default=DEFAULT_OUTPUT)
+    parser.add_argument("--preset-name", default=None, help="recorded in the metadata (default: from the weights file)")
+    parser.add_argument("--check-pairs", type=int, default=8, help="pairs compared between torch and ONNX Runtime")
+    parser.add_argument("--rotation-tol", type=float, default=1e-3, help="max |R_onnx - R_torch| per entry")
+    parser.add_argument("--angle-tol", type=float, default=0.01, help="max difference of rotation errors (deg)")
+    return parser.parse_args(argv)
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = parse_args(argv)
+    model, weights_sha256 = load_checkpoint(args.weights)
+    preset_name = args.preset_name or torch.load(args.weights, map_location="cpu", weights_only=True).get(
+        "preset", "custom"
+    )
+    n = model.config.num_points
+    example = (torch.rand(1, n, 3) - 0.5, torch.rand(1, n, 3) - 0.5)
+
+    with tempfile.TemporaryDirectory() as tmp:
+        candidate = Path(tmp) / "candidate.onnx"
+        seconds = export_onnx(
+            RegistrationGraph(model),
+            candidate,
+            example,
+            ["source", "target"],
+            ["rotation", "translation"],
+            DYNAMIC_AXES,
+            metadata_for(model, preset_name, weights_sha256),
+        )
+        onnx.checker.check_model(str(candidate), full_check=True)
+        report = compare_with_torch(ort_session(candidate), model, evaluation_pairs(args.check_pairs))
+        print(
+            f"exported in {seconds:.1f} s, {candidate.stat().st_size / 1e6:.2f} MB; parity on {report.pairs} pairs: "
+            f"max |dR| {report.max_rotation_entry:.2e}, max |dt| {report.max_translation_entry:.2e}, "
+            f"max rotation-error difference {report.max_angle_difference_deg:.2e} deg"
+        )
+        if not report.passes(args.rotation_tol, args.angle_tol):
+            print(
+                f"refusing to write {args.output}: ONNX Runtime disagrees with torch beyond "
+                f"|dR| <= {args.rotation_tol} / {args.angle_tol} deg",
+                file=sys.stderr,
+            )
+            return 1
+        args.output.parent.mkdir(parents=True, exist_ok=True)
+        shutil.move(candidate, args.output)
+    print(f"wrote {args.output}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,150 @@
+"""Export IFNet to a single static ONNX graph (time steps x iterations unrolled) and check it.
+
+The exported interface is the project's public contract:
+    inputs   source [batch, n_source, 3], target [batch, n_target, 3]   float32
+    outputs  rotation [batch, 3, 3], translation [batch, 3]             float32
+with target ~ source @ rotation^T + translation. Batch and both point counts are dynamic axes.
+"""
+
+import datetime as dt
+import hashlib
+import json
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import onnx
+import onnxruntime as ort
+import torch
+from torch import Tensor, nn
+
+from model.geometry import rotation_angle_deg
+from model.ifnet import IFNet, IFNetConfig
+
+OPSET = 17
+MODEL_NAME = "ifnet"
+PROJECT_ROOT = Path(__file__).resolve().parents[1]
+DEFAULT_WEIGHTS = PROJECT_ROOT / "model" / "weights" / "ifnet-fast.pt"
+DEFAULT_OUTPUT = PROJECT_ROOT / "service" / "models" / "ifnet.onnx"
+DYNAMIC_AXES = {
+    # The two clouds get separate symbolic point counts: one shared name fails when they differ.
+    "source": {0: "batch", 1: "n_source"},
+    "target": {0: "batch", 1: "n_target"},
+    "rotation": {0: "batch"},
+    "translation": {0: "batch"},
+}
+
+
+class RegistrationGraph(nn.Module):
+    """IFNet reduced to the public contract: (source, target) -> (rotation, translation)."""
+
+    def __init__(self, model: IFNet):
+        super().__init__()
+        self.model = model
+
+    def forward(self, source: Tensor, target: Tensor) -> tuple[Tensor, Tensor]:
+        out = self.model(source, target)
+        return out.rotation, out.translation
+
+
+def file_sha256(path: Path) -> str:
+    return hashlib.sha256(Path(path).read_bytes()).hexdigest()
+
+
+def load_checkpoint(path: Path) -> tuple[IFNet, str]:
+    """The model in eval mode from a training checkpoint or shipped weights, and the file's sha256."""
+    state = torch.load(path, map_location="cpu", weights_only=True)
+    model = IFNet(IFNetConfig.from_dict(state["config"]))
+    model.load_state_dict(state["model"])
+    return model.eval(), file_sha256(path)
+
+
+def export_onnx(
+    module: nn.Module,
+    path: Path,
+    example: tuple[Tensor, ...],
+    input_names: list[str],
+    output_names: list[str],
+    dynamic_axes: dict,
+    metadata: dict[str, str] | None = None,
+) -> float:
+    """Trace module to path (one file, no external data); returns the export time in seconds.
+
+    The TorchScript-based exporter is used: it exports the unrolled 9-block graph in ~10 s
+    (the dynamo exporter takes minutes here) and its graph ran ~10 % faster in ONNX Runtime.
+    """
+    path.parent.mkdir(parents=True, exist_ok=True)
+    # The exporter restores the wrapper's train/eval flag recursively after tracing: a wrapper
+    # left in training mode would put the model's BatchNorms back into training mode.
+    module.eval()
+    started = time.perf_counter()
+    with torch.no_grad():
+        torch.onnx.export(
+            module,
+            example,
+            str(path),
+            input_names=input_names,
+            output_names=output_names,
+            dynamic_axes=dynamic_axes,
+            opset_version=OPSET,
+            dynamo=False,
+        )
+    seconds = time.perf_counter() - started
+    if metadata:
+        proto = onnx.load(str(path))
+        onnx.helper.set_model_props(proto, metadata)
+        onnx.save(proto, str(path))
+    return seconds
+
+
+def ort_session(path: Path, threads: int = 2) -> ort.InferenceSession:
+    options = ort.SessionOptions()
+    options.intra_op_num_threads = threads
+    options.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
+    return ort.InferenceSession(str(path), options, providers=["CPUExecutionProvider"])
+
+
+@dataclass
+class ParityReport:
+    max_rotation_entry: float  # max |R_ort - R_torch| over entries
+    max_translation_entry: float
+    max_angle_difference_deg: float  # |error(ORT vs truth) - error(torch vs truth)|, when truth is known
+    pairs: int
+
+    def passes(self, rotation_tol: float, angle_tol_deg: float) -> bool:
+        return self.max_rotation_entry <= rotation_tol and self.max_angle_difference_deg <= angle_tol_deg
+
+
+def compare_with_torch(session: ort.InferenceSession, model: IFNet, pairs: list[dict[str, np.ndarray]]) -> ParityReport:
+    """Run both on the same pairs (one at a time) and report the largest differences."""
+    model.eval()
+    rot_diff = trans_diff = angle_diff = 0.0
+    for pair in pairs:
+        source, target = pair["source"][None], pair["target"][None]
+        rot_ort, trans_ort = session.run(None, {"source": source, "target": target})
+        with torch.no_grad():
+            out = model(torch.from_numpy(source), torch.from_numpy(target))
+        rot_torch, trans_torch = out.rotation.numpy(), out.translation.numpy()
+        rot_diff = max(rot_diff, float(np.abs(rot_ort - rot_torch).max()))
+        trans_diff = max(trans_diff, float(np.abs(trans_ort - trans_torch).max()))
+        if "rotation" in pair:
+            truth = pair["rotation"].astype(np.float64)
+            err_ort = rotation_angle_deg(rot_ort[0].astype(np.float64), truth)
+            err_torch = rotation_angle_deg(rot_torch[0].astype(np.float64), truth)
+            angle_diff = max(angle_diff, float(abs(err_ort - err_torch)))
+    return ParityReport(rot_diff, trans_diff, angle_diff, len(pairs))
+
+
+def metadata_for(model: IFNet, preset_name: str, weights_sha256: str) -> dict[str, str]:
+    """The metadata the service reads (`session.get_modelmeta().custom_metadata_map`)."""
+    return {
+        "model_name": MODEL_NAME,
+        "preset": preset_name,
+        "num_points": str(model.config.num_points),
+        "weights_sha256": weights_sha256,
+        "opset": str(OPSET),
+        "export_date": dt.datetime.now(dt.UTC).isoformat(timespec="seconds"),
+        "config": json.dumps(model.config.to_dict()),
+        "interface": "target ~ source @ rotation^T + translation",
+    }

@@ -1,0 +1,238 @@
+"""NumPy geometry shared by evaluation, the export checks and the service (imports no torch).
+
+Conventions: points are [N, 3] (or [B, N, 3]) arrays; a rigid transform maps source to target as
+target ~ source @ R.T + t; 4x4 matrices are homogeneous [[R, t], [0, 1]].
+"""
+
+import numpy as np
+from scipy.spatial import cKDTree
+from scipy.spatial.transform import Rotation
+
+# ---------------------------------------------------------------- rigid transforms
+
+
+def euler_to_matrix(angles_zyx_deg: np.ndarray) -> np.ndarray:
+    """Rotation R = Rx @ Ry @ Rz from angles (z, y, x) in degrees, as the DCP/IFNet protocol."""
+    return Rotation.from_euler("zyx", angles_zyx_deg, degrees=True).as_matrix()
+
+
+def matrix_to_euler(rotation: np.ndarray) -> np.ndarray:
+    """Angles (z, y, x) in degrees of rotation matrices [..., 3, 3] (inverse of euler_to_matrix)."""
+    return Rotation.from_matrix(rotation).as_euler("zyx", degrees=True)
+
+
+def apply_transform(points: np.ndarray, rotation: np.ndarray, translation: np.ndarray) -> np.ndarray:
+    return points @ np.swapaxes(rotation, -1, -2) + np.expand_dims(translation, -2)
+
+
+def to_matrix(rotation: np.ndarray, translation: np.ndarray) -> np.ndarray:
+    """[..., 3, 3] and [..., 3] -> homogeneous [..., 4, 4]."""
+    out = np.zeros((*rotation.shape[:-2], 4, 4), dtype=np.float64)
+    out[..., :3, :3] = rotation
+    out[..., :3, 3] = translation
+    out[..., 3, 3] = 1.0
+    return out
+
+
+def from_matrix(transform: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    return transform[..., :3, :3], transform[..., :3, 3]
+
+
+def nearest_rotation(matrix: np.ndarray) -> np.ndarray:
+    """The proper rotation closest (Frobenius) to a 3x3 matrix: removes float drift from R."""
+    u, _, vt = np.linalg.svd(matrix)
+    return u @ np.diag([1.0, 1.0, np.sign(np.linalg.det(u @ vt))]) @ vt
+
+
+def rigidity_error(transform: np.ndarray) -> float:
+    """How far a 4x4 matrix is from a proper rigid transform (0 for an exact one)."""
+    rotation = transform[:3, :3]
+    orthogonality = np.abs(rotation @ rotation.T - np.eye(3)).max()
+    return float(max(orthogonality, abs(np.linalg.det(rotation) - 1.0), np.abs(transform[3] - [0, 0, 0, 1]).max()))
+
+
+def random_rotation(rng: np.random.Generator, max_angle_deg: float = 45.0) -> tuple[np.ndarray, np.ndarray]:
+    """The paper's rotation: Euler angles (z, y, x) each uniform in [0, max]; returns (R, angles)."""
+    angles = rng.uniform(0.0, max_angle_deg, size=3)
+    return euler_to_matrix(angles), angles
+
+
+# ---------------------------------------------------------------- error metrics
+
+
+def rotation_angle_deg(rotation_a: np.ndarray, rotation_b: np.ndarray) -> np.ndarray:
+    """Isotropic angle in degrees between rotations [..., 3, 3] (accurate near zero)."""
+    difference = np.linalg.norm((rotation_a - rotation_b).reshape(*rotation_a.shape[:-2], 9), axis=-1)
+    return np.degrees(2.0 * np.arcsin(np.clip(difference / (2.0 * np.sqrt(2.0)), 0.0, 1.0)))
+
+
+def registration_errors(
+    rot_pred: np.ndarray, trans_pred: np.ndarray, rot_true: np.ndarray, trans_true: np.ndarray
+) -> dict[str, np.ndarray]:
+    """Per-pair errors for batches [B, 3, 3] / [B, 3].
+
+    euler_abs: |Euler(R_pred) - Euler(R_true)| per angle (deg), the anisotropic metric of DCP;
+    trans_abs: |t_pred - t_true| per axis; rotation_deg / translation: isotropic errors.
+    """
+    euler_diff = matrix_to_euler(rot_pred) - matrix_to_euler(rot_true)
+    euler_diff = (euler_diff + 180.0) % 360.0 - 180.0  # wrap, so 359 vs 1 degree is 2 degrees
+    return {
+        "euler_abs": np.abs(euler_diff),
+        "trans_abs": np.abs(trans_pred - trans_true),
+        "rotation_deg": rotation_angle_deg(rot_pred, rot_true),
+        "translation": np.linalg.norm(trans_pred - trans_true, axis=-1),
+    }
+
+
+def summarise_errors(errors: dict[str, np.ndarray]) -> dict[str, float]:
+    """The paper's table (RMSE/MAE of Euler angles and translation) plus isotropic errors and recall."""
+    rot, trans = errors["rotation_deg"], errors["translation"]
+    return {
+        "rmse_r": float(np.sqrt(np.mean(errors["euler_abs"] ** 2))),
+        "mae_r": float(np.mean(errors["euler_abs"])),
+        "rmse_t": float(np.sqrt(np.mean(errors["trans_abs"] ** 2))),
+        "mae_t": float(np.mean(errors["trans_abs"])),
+        "iso_r_mean": float(np.mean(rot)),
+        "iso_r_median": float(np.median(rot)),
+        "iso_t_mean": float(np.mean(trans)),
+        "recall_1deg_001": float(np.mean((rot < 1.0) & (trans < 0.01))),
+        "recall_5deg_005": float(np.mean((rot < 5.0) & (trans < 0.05))),
+    }
+
+
+def fitness_and_rmse(source_aligned: np.ndarray, target: np.ndarray, threshold: float) -> tuple[float, float]:
+    """Open3D-style fitness (share of source points with a target point within threshold) and
+    the RMSE of those inlier distances."""
+    distances, _ = cKDTree(target).query(source_aligned, k=1, distance_upper_bound=threshold)
+    inliers = np.isfinite(distances)
+    if not inliers.any():
+        return 0.0, 0.0
+    return float(inliers.mean()), float(np.sqrt(np.mean(distances[inliers] ** 2)))
+
+
+# ---------------------------------------------------------------- sampling and normalisation
+
+
+def remove_duplicates(points: np.ndarray) -> np.ndarray:
+    """Drop exact duplicate points, keeping first occurrences in their original order.
+
+    Duplicates make kNN ties, whose order differs between torch and ONNX Runtime.
+    """
+    _, first = np.unique(points, axis=0, return_index=True)
+    return points[np.sort(first)]
+
+
+def degeneracy(points: np.ndarray, relative_tolerance: float = 1e-4) -> str | None:
+    """Why a cloud [N, 3] cannot constrain a rigid transform, or None if it can.
+
+    "identical": all points coincide (up to float rounding); "collinear": the second principal
+    extent is below relative_tolerance times the first. Coplanar clouds pass: a plane still
+    fixes most of the motion, and flat scans are common.
+    """
+    if len(points) < 2:
+        return "identical"
+    extents = np.linalg.svd(points - points.mean(axis=0), compute_uv=False)  # largest first
+    rounding = 1e-12 * max(float(np.abs(points).max()), 1.0) * np.sqrt(len(points))
+    if extents[0] <= rounding:
+        return "identical"
+    if extents[1] <= relative_tolerance * extents[0]:
+        return "collinear"
+    return None
+
+
+def farthest_point_sample(points: np.ndarray, count: int, start: int = 0) -> np.ndarray:
+    """Indices of `count` points chosen by deterministic farthest-point sampling."""
+    chosen = np.empty(count, dtype=np.int64)
+    chosen[0] = start
+    distance = np.full(len(points), np.inf)
+    for i in range(1, count):
+        distance = np.minimum(distance, np.sum((points - points[chosen[i - 1]]) ** 2, axis=1))
+        chosen[i] = int(np.argmax(distance))
+    return chosen
+
+
+def resample_indices(
+    num_points: int, count: int, method: str, rng: np.random.Generator, points: np.ndarray
+) -> np.ndarray:
+    """Indices that bring a cloud of num_points to exactly count points.
+
+    Larger clouds are subsampled ("fps": farthest point, "random": seeded, without replacement);
+    smaller ones keep every point once and repeat randomly chosen ones to fill up.
+    """
+    if num_points >= count:
+        if method == "fps":
+            return farthest_point_sample(points, count)
+        return np.sort(rng.choice(num_points, size=count, replace=False))
+    extra = rng.choice(num_points, size=count - num_points, replace=True)
+    return np.concatenate([np.arange(num_points), extra])
+
+
+def crop_nearest(points: np.ndarray, anchor: np.ndarray, count: int) -> np.ndarray:
+    """The `count` points nearest to anchor (the protocol's partial view), nearest first."""
+    order = np.argsort(np.sum((points - anchor) ** 2, axis=1), kind="stable")
+    return points[order[:count]]
+
+
+class Normalisation:
+    """Centre each cloud on its centroid and scale both by one common factor into the unit sphere.
+
+    The network then sees clouds like its training data; `to_user_units` maps a transform found
+    on the normalised clouds back to the original coordinates.
+    """
+
+    def __init__(self, source: np.ndarray, target: np.ndarray):
+        self.source_centre = source.mean(axis=0)
+        self.target_centre = target.mean(axis=0)
+        radius = max(
+            np.linalg.norm(source - self.source_centre, axis=1).max(),
+            np.linalg.norm(target - self.target_centre, axis=1).max(),
+        )
+        self.scale = 1.0 / radius if radius > 0 else 1.0
+
+    def source(self, points: np.ndarray) -> np.ndarray:
+        return (points - self.source_centre) * self.scale
+
+    def target(self, points: np.ndarray) -> np.ndarray:
+        return (points - self.target_centre) * self.scale
+
+    def to_user_units(self, rotation: np.ndarray, translation: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(R, t') on normalised clouds -> (R, t) on the original ones.
+
+        s(y - cy) = R s(x - cx) + t'  =>  y = R x + (cy - R cx + t' / s).
+        """
+        return rotation, self.target_centre - rotation @ self.source_centre + translation / self.scale
+
+
+# ---------------------------------------------------------------- refinement
+
+
+def icp_refine(
+    source: np.ndarray,
+    target: np.ndarray,
+    rotation: np.ndarray,
+    translation: np.ndarray,
+    max_distance: float,
+    max_iterations: int = 30,
+) -> tuple[np.ndarray, np.ndarray, int]:
+    """Point-to-point ICP (small_gicp) on the full clouds, starting from (rotation, translation).
+
+    max_distance bounds the correspondence distance, in the clouds' units. Returns the refined
+    (R, t) and the number of iterations run.
+    """
+    import small_gicp  # imported here so that the rest of this module needs only numpy/scipy
+
+    target_cloud = small_gicp.PointCloud(np.ascontiguousarray(target, dtype=np.float64))
+    source_cloud = small_gicp.PointCloud(np.ascontiguousarray(source, dtype=np.float64))
+    result = small_gicp.align(
+        target_cloud,
+        source_cloud,
+        small_gicp.KdTree(target_cloud),
+        init_T_target_source=to_matrix(rotation, translation),
+        registration_type="ICP",
+        max_correspondence_distance=max_distance,
+        max_iterations=max_iterations,
+        rotation_epsilon=1e-5,
+        translation_epsilon=1e-6 * max_distance,
+    )
+    refined_rotation, refined_translation = from_matrix(np.asarray(result.T_target_source))
+    return refined_rotation, refined_translation, int(result.iterations)

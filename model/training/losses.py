@@ -1,0 +1,78 @@
+"""The paper's three unsupervised losses; no ground-truth pose is used.
+
+Each is computed for every Feedback Registration Block and averaged with equal weight.
+"""
+
+from typing import NamedTuple
+
+import torch
+from torch import Tensor
+
+from model.ifnet import BlockOutput, IFNetConfig, IFNetOutput
+from model.ops import gather_neighbours, gather_rows, pairwise_sq_distances, transform_points
+
+
+class Losses(NamedTuple):
+    global_registration: Tensor
+    neighbourhood_consistency: Tensor
+    pseudo_consistency: Tensor
+
+    @property
+    def total(self) -> Tensor:
+        return self.global_registration + self.neighbourhood_consistency + self.pseudo_consistency
+
+
+def huber(x: Tensor, margin: float) -> Tensor:
+    """Huber function on (already squared) distances, as the official code applies it."""
+    return torch.where(x < margin, 0.5 * x * x, margin * x - 0.5 * margin * margin)
+
+
+def global_registration_loss(moved_source: Tensor, target: Tensor, margin: float) -> Tensor:
+    """Huber of bidirectional nearest-neighbour squared distances, summed over points; [B]."""
+    sq = pairwise_sq_distances(moved_source, target)  # [B, N, M]
+    return huber(sq.amin(dim=2), margin).sum(-1) + huber(sq.amin(dim=1), margin).sum(-1)
+
+
+def keypoints(block: BlockOutput, count: int) -> Tensor:
+    """Indices [B, K] of the source points with the highest overlap weights."""
+    return block.weights.topk(min(count, block.weights.shape[1]), dim=1).indices
+
+
+def neighbourhood_consistency_loss(block: BlockOutput, keypoint_idx: Tensor, neighbour_idx: Tensor) -> Tensor:
+    """Keypoints and their kNN edges, moved by the block's transform, against the pseudo target's; [B].
+
+    As in the official code: squared keypoint residuals plus squared edge residuals / k.
+    """
+    rotation, translation = block.rotation, block.translation
+    src_kp = gather_rows(block.source, keypoint_idx)  # [B, K, 3]
+    tgt_kp = gather_rows(block.pseudo_target, keypoint_idx)
+    point_term = (transform_points(src_kp, rotation, translation) - tgt_kp).pow(2).sum((1, 2))
+
+    kp_neighbours = gather_rows(neighbour_idx, keypoint_idx)  # [B, K, k]
+    src_edges = src_kp.unsqueeze(2) - gather_neighbours(block.source, kp_neighbours)  # [B, K, k, 3]
+    tgt_edges = tgt_kp.unsqueeze(2) - gather_neighbours(block.pseudo_target, kp_neighbours)
+    src_edges = src_edges @ rotation.unsqueeze(1).transpose(-1, -2)
+    edge_term = (src_edges - tgt_edges).pow(2).sum((1, 2, 3)) / neighbour_idx.shape[-1]
+    return point_term + edge_term
+
+
+def pseudo_consistency_loss(block: BlockOutput, keypoint_idx: Tensor) -> Tensor:
+    """Cross-entropy of each keypoint's matching row against its own argmax; [B]."""
+    rows = gather_rows(block.matching, keypoint_idx)  # [B, K, M]
+    return -torch.log(rows.amax(dim=-1) + 1e-15).mean(-1)
+
+
+def ifnet_losses(output: IFNetOutput, target: Tensor, config: IFNetConfig) -> Losses:
+    """The three losses averaged over blocks and batch."""
+    terms = torch.zeros(3, device=target.device)
+    for block in output.blocks:
+        moved = transform_points(block.source, block.rotation, block.translation)
+        idx = keypoints(block, config.n_keypoints)
+        terms = terms + torch.stack(
+            [
+                global_registration_loss(moved, target, config.huber_margin).mean(),
+                neighbourhood_consistency_loss(block, idx, output.source_graph.edgeconv).mean(),
+                pseudo_consistency_loss(block, idx).mean(),
+            ]
+        )
+    return Losses(*(terms / len(output.blocks)))

@@ -1,0 +1,223 @@
+"""Train IFNet with the paper's unsupervised losses.
+
+    python -m model.training.train --preset fast --epochs 2 --out runs/fast
+
+Writes <out>/checkpoint.pt every --checkpoint-every steps (and at the end), a CSV log of the
+losses, and losses.png. Rerunning the same command resumes from the checkpoint.
+"""
+
+import argparse
+import csv
+import json
+import math
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch.utils.data import DataLoader, Subset
+from tqdm import tqdm
+
+from model.geometry import rotation_angle_deg
+from model.ifnet import PRESETS, IFNet, IFNetConfig, preset
+from model.training.data import DEFAULT_DATA_DIR, Protocol, RegistrationPairs, load_split
+from model.training.losses import ifnet_losses
+
+LOG_FIELDS = [
+    "step",
+    "epoch",
+    "lr",
+    "total",
+    "global_registration",
+    "neighbourhood_consistency",
+    "pseudo_consistency",
+    "val_rotation_deg",
+    "seconds",
+]
+
+
+def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--preset", default="fast", choices=sorted(PRESETS))
+    parser.add_argument("--epochs", type=float, default=2.0, help="may be fractional")
+    parser.add_argument("--batch-size", type=int, default=4)
+    parser.add_argument("--lr", type=float, default=1e-3, help="Adam learning rate (the paper's 1e-3)")
+    parser.add_argument("--schedule", choices=["cosine", "constant"], default="cosine")
+    parser.add_argument("--seed", type=int, default=3407)
+    parser.add_argument("--data-dir", type=Path, default=DEFAULT_DATA_DIR)
+    parser.add_argument("--out", type=Path, default=Path("runs/default"))
+    parser.add_argument("--checkpoint-every", type=int, default=100, help="steps")
+    parser.add_argument("--val-shapes", type=int, default=64, help="training shapes held out for validation")
+    parser.add_argument("--max-shapes", type=int, default=0, help="train on the first N shapes only (0: all)")
+    parser.add_argument("--max-steps", type=int, default=0, help="stop after this many steps (0: no limit)")
+    parser.add_argument("--threads", type=int, default=0, help="torch threads (0: torch's default)")
+    parser.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
+    return parser.parse_args(argv)
+
+
+def learning_rate(args: argparse.Namespace, step: int, total_steps: int) -> float:
+    if args.schedule == "constant":
+        return args.lr
+    return args.lr * 0.5 * (1.0 + math.cos(math.pi * min(step / max(total_steps, 1), 1.0)))
+
+
+@torch.no_grad()
+def validate(model: IFNet, pairs: RegistrationPairs, device: str, batch_size: int) -> float:
+    """Mean isotropic rotation error (deg) on held-out pairs; monitoring only, not a loss."""
+    was_training = model.training
+    model.eval()
+    errors = []
+    for batch in DataLoader(pairs, batch_size=batch_size):
+        out = model(batch["source"].to(device), batch["target"].to(device))
+        errors.append(rotation_angle_deg(out.rotation.cpu().double().numpy(), batch["rotation"].double().numpy()))
+    model.train(was_training)
+    return float(np.concatenate(errors).mean())
+
+
+def save_checkpoint(path: Path, model: IFNet, optimizer: torch.optim.Optimizer, step: int, args: argparse.Namespace):
+    state = {
+        "model": model.state_dict(),
+        "config": model.config.to_dict(),
+        "preset": args.preset,
+        "optimizer": optimizer.state_dict(),
+        "step": step,
+        "args": {k: str(v) if isinstance(v, Path) else v for k, v in vars(args).items()},
+    }
+    tmp = path.with_suffix(".tmp")
+    torch.save(state, tmp)
+    tmp.replace(path)  # atomic: a kill mid-write never leaves a broken checkpoint
+
+
+def truncate_log(log_path: Path, step: int) -> None:
+    """Drop log rows written after the checkpoint a run resumes from (they will be redone)."""
+    with log_path.open() as f:
+        rows = [row for row in csv.DictReader(f) if int(row["step"]) <= step]
+    with log_path.open("w", newline="") as f:
+        writer = csv.DictWriter(f, LOG_FIELDS)
+        writer.writeheader()
+        writer.writerows(rows)
+
+
+def plot_losses(log_path: Path, png_path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    with log_path.open() as f:
+        rows = list(csv.DictReader(f))
+    if not rows:
+        return
+    steps = [int(r["step"]) for r in rows]
+    fig, axes = plt.subplots(1, 5, figsize=(20, 3.5))
+    for ax, key in zip(axes, LOG_FIELDS[3:7]):
+        ax.plot(steps, [float(r[key]) for r in rows], lw=0.6)
+        ax.set_title(key)
+        ax.set_xlabel("step")
+        ax.set_yscale("log")
+    val = [(s, float(r["val_rotation_deg"])) for s, r in zip(steps, rows) if r["val_rotation_deg"]]
+    if val:
+        axes[4].plot(*zip(*val), marker="o")
+        axes[4].set_yscale("log")
+    axes[4].set_title("validation rotation error (deg)")
+    axes[4].set_xlabel("step")
+    fig.tight_layout()
+    fig.savefig(png_path, dpi=90)
+    plt.close(fig)
+
+
+def train(args: argparse.Namespace) -> Path:
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    torch.manual_seed(args.seed)
+    args.out.mkdir(parents=True, exist_ok=True)
+    checkpoint_path, log_path = args.out / "checkpoint.pt", args.out / "log.csv"
+
+    shapes = load_split("train", args.data_dir)
+    val_shapes, train_shapes = shapes[-args.val_shapes :], shapes[: -args.val_shapes]
+    if args.max_shapes:
+        train_shapes = train_shapes[: args.max_shapes]
+    train_pairs = RegistrationPairs(train_shapes, Protocol(), seed=args.seed)
+    val_pairs = RegistrationPairs(val_shapes, Protocol(), seed=args.seed + 1)
+
+    config: IFNetConfig = preset(args.preset)
+    model = IFNet(config).to(args.device)
+    optimizer = torch.optim.Adam(model.parameters(), lr=args.lr)
+    step = 0
+    if checkpoint_path.exists():
+        state = torch.load(checkpoint_path, map_location=args.device)
+        if IFNetConfig.from_dict(state["config"]) != config:
+            raise SystemExit(f"{checkpoint_path} holds a different preset; use another --out")
+        model.load_state_dict(state["model"])
+        optimizer.load_state_dict(state["optimizer"])
+        step = state["step"]
+        truncate_log(log_path, step)
+        print(f"resumed from {checkpoint_path} at step {step}")
+    else:
+        log_path.write_text(",".join(LOG_FIELDS) + "\n")
+
+    steps_per_epoch = len(train_pairs) // args.batch_size
+    total_steps = int(args.epochs * steps_per_epoch)
+    if args.max_steps:
+        total_steps = min(total_steps, args.max_steps)
+    print(
+        f"preset {args.preset}: {model.num_parameters():,} parameters, {len(train_pairs)} training shapes, "
+        f"{steps_per_epoch} steps/epoch, {total_steps} steps"
+    )
+
+    model.train()
+    progress = tqdm(total=total_steps, initial=step, dynamic_ncols=True)
+    running: dict[str, float] = {}
+    started = time.time()
+    with log_path.open("a", newline="") as log_file:
+        log = csv.DictWriter(log_file, LOG_FIELDS)
+        while step < total_steps:
+            # Each epoch's order depends only on (seed, epoch), so a resumed run skips exactly
+            # the batches it already trained on.
+            epoch, offset = divmod(step, steps_per_epoch)
+            train_pairs.epoch = epoch
+            order = np.random.default_rng((args.seed, epoch)).permutation(len(train_pairs))
+            order = order[offset * args.batch_size : steps_per_epoch * args.batch_size]
+            for batch in DataLoader(Subset(train_pairs, order.tolist()), batch_size=args.batch_size):
+                for group in optimizer.param_groups:
+                    group["lr"] = learning_rate(args, step, total_steps)
+                target = batch["target"].to(args.device)
+                losses = ifnet_losses(model(batch["source"].to(args.device), target), target, config)
+                optimizer.zero_grad(set_to_none=True)
+                losses.total.backward()
+                optimizer.step()
+                step += 1
+
+                values = {"total": losses.total.item(), **{k: v.item() for k, v in losses._asdict().items()}}
+                running = {k: 0.9 * running.get(k, v) + 0.1 * v for k, v in values.items()}
+                progress.set_postfix({k[:6]: f"{v:.3g}" for k, v in running.items()})
+                progress.update()
+                row = {
+                    "step": step,
+                    "epoch": f"{step / steps_per_epoch:.3f}",
+                    "lr": f"{optimizer.param_groups[0]['lr']:.3g}",
+                    "seconds": f"{time.time() - started:.1f}",
+                    "val_rotation_deg": "",
+                    **values,
+                }
+                if step % args.checkpoint_every == 0 or step == total_steps:
+                    row["val_rotation_deg"] = f"{validate(model, val_pairs, args.device, args.batch_size):.4f}"
+                    progress.write(f"step {step}: validation rotation error {row['val_rotation_deg']} deg")
+                    save_checkpoint(checkpoint_path, model, optimizer, step, args)
+                log.writerow(row)
+                log_file.flush()
+                if row["val_rotation_deg"]:
+                    plot_losses(log_path, args.out / "losses.png")
+                if step >= total_steps:
+                    break
+    progress.close()
+    (args.out / "summary.json").write_text(json.dumps({"steps": step, "epochs": step / steps_per_epoch}, indent=2))
+    return checkpoint_path
+
+
+def main(argv: list[str] | None = None) -> None:
+    train(parse_args(argv))
+
+
+if __name__ == "__main__":
+    main()

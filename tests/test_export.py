@@ -1,0 +1,171 @@
+"""Contract tests: the ONNX graph computes what the torch model computes, on the same weights.
+
+Tolerances (also in the README):
+  * one Feedback Registration Block, same inputs: rotation entries within 1e-3, translation 1e-4;
+  * a 1-iteration, 1-time-step random-weights model end to end: rotation and translation 1e-3;
+  * the shipped weights end to end: rotation entries within 1e-3 and the rotation error against
+    the known motion within 0.01 degrees of torch's.
+A 9-block random-weights model is not compared end to end: random blocks amplify float32 noise
+so much that torch float32 and torch float64 already disagree by degrees.
+
+Inputs are continuous random or ModelNet shapes without duplicate points. Exact distance ties
+(duplicates, grid data) would break parity for a reason unrelated to the export: ONNX Runtime's
+TopK puts the lower index first, torch's order among equal distances is unspecified, so the two
+pick different neighbours.
+"""
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+torch = pytest.importorskip("torch", reason="the export tests need torch")
+pytest.importorskip("onnx", reason="the export tests need onnx")
+
+from export.onnx_export import (  # noqa: E402
+    DEFAULT_OUTPUT,
+    DEFAULT_WEIGHTS,
+    DYNAMIC_AXES,
+    RegistrationGraph,
+    compare_with_torch,
+    export_onnx,
+    file_sha256,
+    load_checkpoint,
+    ort_session,
+)
+from model.ifnet import IFNet, preset  # noqa: E402
+from model.training.data import evaluation_pairs  # noqa: E402
+
+SHIPPED = DEFAULT_WEIGHTS.exists() and DEFAULT_OUTPUT.exists()
+
+
+class SingleBlock(torch.nn.Module):
+    """One FRB as a graph: (moved source, target[, fed-back target features]) -> (R, t)."""
+
+    def __init__(self, model: IFNet, with_feedback: bool):
+        super().__init__()
+        self.block = model.block
+        self.with_feedback = with_feedback
+
+    def forward(self, source, target, feedback=None):
+        context = self.block.encode_target(target)
+        out = self.block(source, self.block.build_graph(source), context, feedback if self.with_feedback else None)
+        return out.rotation, out.translation
+
+
+def block_inputs(model: IFNet, source, target) -> list[tuple]:
+    """The inputs each of the model's 9 blocks saw in a torch run: (moved source, feedback)."""
+    with torch.no_grad():
+        out = model(source, target)
+    n_iters = model.config.n_iters
+    inputs = []
+    for index, block in enumerate(out.blocks):
+        feedback = None if index < n_iters else out.blocks[index - n_iters].target_features
+        inputs.append((block.source, feedback, block.rotation, block.translation))
+    return inputs
+
+
+def export_block(model: IFNet, with_feedback: bool, path: Path, n: int):
+    example = [torch.rand(1, n, 3) - 0.5, torch.rand(1, n, 3) - 0.5]
+    names = ["source", "target"]
+    axes = {"source": DYNAMIC_AXES["source"], "target": DYNAMIC_AXES["target"]}
+    if with_feedback:
+        example.append(torch.randn(1, n, model.config.emb_dims))
+        names.append("feedback")
+        axes["feedback"] = {0: "batch", 1: "n_target"}
+    export_onnx(SingleBlock(model, with_feedback), path, tuple(example), names, ["rotation", "translation"], axes)
+    return ort_session(path)
+
+
+def model_under_test() -> IFNet:
+    if DEFAULT_WEIGHTS.exists():
+        return load_checkpoint(DEFAULT_WEIGHTS)[0]
+    torch.manual_seed(0)
+    return IFNet(preset("fast")).eval()
+
+
+def stacked_pairs(batch: int) -> tuple:
+    pairs = evaluation_pairs(batch, seed=5)
+    return (
+        torch.from_numpy(np.stack([p["source"] for p in pairs])),
+        torch.from_numpy(np.stack([p["target"] for p in pairs])),
+    )
+
+
+@pytest.mark.parametrize("batch", [1, 4])
+def test_each_block_matches_torch_on_the_same_inputs(tmp_path, batch):
+    model = model_under_test()
+    source, target = stacked_pairs(batch)
+    first = export_block(model, False, tmp_path / "block_t0.onnx", source.shape[1])
+    later = export_block(model, True, tmp_path / "block_fb.onnx", source.shape[1])
+    for index, (moved, feedback, rotation, translation) in enumerate(block_inputs(model, source, target)):
+        feeds = {"source": moved.numpy(), "target": target.numpy()}
+        session = first if feedback is None else later
+        if feedback is not None:
+            feeds["feedback"] = feedback.numpy()
+        rot_ort, trans_ort = session.run(None, feeds)
+        assert np.abs(rot_ort - rotation.numpy()).max() <= 1e-3, f"block {index}"
+        assert np.abs(trans_ort - translation.numpy()).max() <= 1e-4, f"block {index}"
+
+
+def test_one_iteration_one_step_random_model_end_to_end(tmp_path):
+    torch.manual_seed(1)
+    model = IFNet(preset("fast", n_iters=1, time_steps=1)).eval()
+    source, target = stacked_pairs(4)
+    path = tmp_path / "one_block.onnx"
+    export_onnx(
+        RegistrationGraph(model),
+        path,
+        (source[:1], target[:1]),
+        ["source", "target"],
+        ["rotation", "translation"],
+        DYNAMIC_AXES,
+    )
+    rot_ort, trans_ort = ort_session(path).run(None, {"source": source.numpy(), "target": target.numpy()})
+    with torch.no_grad():
+        out = model(source, target)
+    assert np.abs(rot_ort - out.rotation.numpy()).max() <= 1e-3
+    assert np.abs(trans_ort - out.translation.numpy()).max() <= 1e-3
+
+
+def test_dynamic_batch_and_point_counts(tmp_path):
+    """Batch and both point counts are dynamic: other sizes than the export example run."""
+    torch.manual_seed(2)
+    model = IFNet(preset("fast", n_iters=1, time_steps=2)).eval()
+    path = tmp_path / "dynamic.onnx"
+    export_onnx(
+        RegistrationGraph(model),
+        path,
+        (torch.rand(1, 64, 3), torch.rand(1, 64, 3)),
+        ["source", "target"],
+        ["rotation", "translation"],
+        DYNAMIC_AXES,
+    )
+    session = ort_session(path)
+    rotation, translation = session.run(
+        None,
+        {
+            "source": np.random.rand(3, 300, 3).astype(np.float32),
+            "target": np.random.rand(3, 420, 3).astype(np.float32),
+        },
+    )
+    assert rotation.shape == (3, 3, 3) and translation.shape == (3, 3)
+    np.testing.assert_allclose(np.linalg.det(rotation), 1.0, atol=1e-5)
+
+
+@pytest.mark.skipif(not SHIPPED, reason="no shipped weights and ONNX model in the checkout")
+def test_committed_onnx_matches_committed_weights():
+    """Outputs, not bytes: the committed ONNX must compute what the committed weights compute."""
+    session = ort_session(DEFAULT_OUTPUT)
+    metadata = session.get_modelmeta().custom_metadata_map
+    assert metadata["weights_sha256"] == file_sha256(DEFAULT_WEIGHTS), "ONNX exported from other weights"
+    record = json.loads(DEFAULT_WEIGHTS.with_suffix(".json").read_text())
+    assert record["sha256"] == file_sha256(DEFAULT_WEIGHTS)
+    model, _ = load_checkpoint(DEFAULT_WEIGHTS)
+    assert json.loads(metadata["config"]) == model.config.to_dict()
+    assert int(metadata["num_points"]) == model.config.num_points
+
+    report = compare_with_torch(session, model, evaluation_pairs(6, seed=11))
+    assert report.max_rotation_entry <= 1e-3, report
+    assert report.max_angle_difference_deg <= 0.01, report

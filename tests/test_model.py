@@ -1,0 +1,181 @@
+"""The IFNet model: interface, rotation validity, gradients, losses, and that it can learn."""
+
+import numpy as np
+import pytest
+
+torch = pytest.importorskip("torch", reason="the model tests need torch (pip install -e '.[train]')")
+
+from model.ifnet import IFNet, IFNetConfig, preset  # noqa: E402
+from model.ops import transform_points  # noqa: E402
+from model.training.data import Protocol, make_pair, synthetic_shape  # noqa: E402
+from model.training.losses import (  # noqa: E402
+    global_registration_loss,
+    ifnet_losses,
+    neighbourhood_consistency_loss,
+    pseudo_consistency_loss,
+)
+
+# Narrow widths keep the full 3 x 3 unrolled model fast enough for unit tests.
+TINY = preset("fast", emb_dims=32, attention_hidden=32, pos_hidden=16, edgeconv_widths=(16, 16, 32, 32))
+
+
+def random_clouds(batch: int, n: int, seed: int = 0) -> tuple:
+    g = torch.Generator().manual_seed(seed)
+    return torch.rand(batch, n, 3, generator=g) - 0.5, torch.rand(batch, n, 3, generator=g) - 0.5
+
+
+def assert_proper_rotations(rotation):
+    eye = torch.eye(3).expand_as(rotation)
+    assert torch.allclose(rotation @ rotation.transpose(1, 2), eye, atol=1e-5)
+    assert torch.allclose(torch.linalg.det(rotation), torch.ones(rotation.shape[0]), atol=1e-5)
+
+
+@pytest.mark.parametrize("batch", [1, 4])
+@pytest.mark.parametrize("n", [512, 768, 1024])
+def test_shapes_dtypes_and_proper_rotations(batch, n):
+    torch.manual_seed(0)
+    model = IFNet(TINY).eval()
+    source, target = random_clouds(batch, n)
+    with torch.no_grad():
+        out = model(source, target)
+    assert out.rotation.shape == (batch, 3, 3) and out.rotation.dtype == torch.float32
+    assert out.translation.shape == (batch, 3) and out.translation.dtype == torch.float32
+    assert len(out.blocks) == TINY.n_iters * TINY.time_steps
+    assert out.blocks[0].matching.shape == (batch, n, n)
+    assert out.blocks[0].weights.shape == (batch, n)
+    assert_proper_rotations(out.rotation)
+
+
+def test_source_and_target_may_differ_in_size():
+    model = IFNet(TINY).eval()
+    source, _ = random_clouds(2, 600)
+    _, target = random_clouds(2, 700, seed=1)
+    with torch.no_grad():
+        out = model(source, target)
+    assert out.blocks[-1].matching.shape == (2, 600, 700)
+    assert_proper_rotations(out.rotation)
+
+
+def test_output_is_the_composition_of_the_last_time_step():
+    """target ~ source @ R^T + t must equal applying the last time step's blocks one by one."""
+    model = IFNet(TINY).eval()
+    source, target = random_clouds(2, 512)
+    with torch.no_grad():
+        out = model(source, target)
+    moved = source
+    for block in out.blocks[-TINY.n_iters :]:
+        moved = transform_points(moved, block.rotation, block.translation)
+    assert torch.allclose(transform_points(source, out.rotation, out.translation), moved, atol=1e-5)
+
+
+def test_rotations_valid_for_degenerate_inputs():
+    """Planar, collinear and nearly coincident clouds still give proper rotations, no NaN."""
+    model = IFNet(TINY).eval()
+    g = torch.Generator().manual_seed(3)
+    planar = torch.rand(1, 512, 3, generator=g) * torch.tensor([1.0, 1.0, 0.0])
+    line = torch.linspace(0, 1, 512).view(1, 512, 1) * torch.tensor([1.0, 2.0, 3.0]) + 1e-4 * torch.rand(1, 512, 3)
+    tiny = 1e-6 * torch.rand(1, 512, 3, generator=g)
+    for cloud in (planar, line, tiny):
+        with torch.no_grad():
+            out = model(cloud, cloud.flip(1))
+        assert torch.isfinite(out.rotation).all() and torch.isfinite(out.translation).all()
+        assert_proper_rotations(out.rotation)
+
+
+def test_gradients_reach_every_parameter():
+    torch.manual_seed(0)
+    model = IFNet(TINY).train()
+    source, target = random_clouds(2, 512)
+    losses = ifnet_losses(model(source, target), target, TINY)
+    losses.total.backward()
+    missing = [n for n, p in model.named_parameters() if p.grad is None or not torch.any(p.grad != 0)]
+    assert not missing, f"no gradient reaches {missing}"
+    assert all(torch.isfinite(p.grad).all() for p in model.parameters())
+
+
+def test_every_size_is_a_config_field():
+    """Changing a config width changes the module sizes: nothing is a hidden literal."""
+    small = IFNet(preset("fast")).num_parameters()
+    wider = IFNet(preset("fast", emb_dims=96)).num_parameters()
+    assert wider > small
+    assert IFNet(preset("paper")).num_parameters() > 200_000  # paper sizes: ~230k parameters
+    cfg = IFNetConfig.from_dict(preset("paper").to_dict())
+    assert cfg == preset("paper")
+
+
+# ------------------------------------------------------------------ losses
+
+
+def perfect_block(rotation_error_deg: float = 0.0):
+    """A hand-built block output whose pseudo target is the exact motion of the source."""
+    from scipy.spatial.transform import Rotation
+
+    from model.ifnet import BlockOutput
+
+    rng = np.random.default_rng(0)
+    source = torch.from_numpy(synthetic_shape(rng, 512))[None]
+    true_r = torch.from_numpy(Rotation.from_euler("zyx", [20, 10, 5], degrees=True).as_matrix()).float()[None]
+    true_t = torch.tensor([[0.1, -0.2, 0.05]])
+    target = transform_points(source, true_r, true_t)
+    wrong = torch.from_numpy(Rotation.from_euler("z", rotation_error_deg, degrees=True).as_matrix()).float()[None]
+    rotation = wrong @ true_r
+    matching = torch.eye(512)[None] * 0.999 + 0.001 / 512  # rows peaked on the true match
+    block = BlockOutput(rotation, true_t, source, target, torch.ones(1, 512), matching, torch.zeros(1, 512, 8))
+    neighbours = torch.cdist(source, source).topk(5, largest=False).indices
+    return block, target, neighbours
+
+
+def test_losses_near_zero_for_perfect_alignment_and_larger_when_wrong():
+    block, target, neighbours = perfect_block(0.0)
+    bad_block, _, _ = perfect_block(30.0)
+    keypoint_idx = torch.arange(256)[None]
+    moved = transform_points(block.source, block.rotation, block.translation)
+    bad_moved = transform_points(bad_block.source, bad_block.rotation, bad_block.translation)
+
+    assert global_registration_loss(moved, target, 0.01).item() < 1e-8
+    assert global_registration_loss(bad_moved, target, 0.01).item() > 1e-4
+    assert neighbourhood_consistency_loss(block, keypoint_idx, neighbours).item() < 1e-8
+    assert neighbourhood_consistency_loss(bad_block, keypoint_idx, neighbours).item() > 1.0
+
+    sharp = pseudo_consistency_loss(block, keypoint_idx).item()
+    flat = block._replace(matching=torch.full((1, 512, 512), 1.0 / 512))
+    assert sharp < 0.01
+    assert pseudo_consistency_loss(flat, keypoint_idx).item() > 5.0  # log(512) = 6.2
+
+
+@pytest.mark.slow
+def test_overfit_four_pairs_lowers_loss_and_registration_error():
+    """50 Adam steps on 4 fixed pairs: loss falls clearly and the pairs register better."""
+    from model.geometry import rotation_angle_deg
+
+    torch.manual_seed(0)
+    pairs = [
+        make_pair(
+            synthetic_shape(np.random.default_rng(i)),
+            Protocol(num_points=512, crop_points=384),
+            np.random.default_rng(i),
+        )
+        for i in range(4)
+    ]
+    batch = {k: torch.from_numpy(np.stack([p[k] for p in pairs])) for k in pairs[0]}
+    model = IFNet(TINY)
+    optimizer = torch.optim.Adam(model.parameters(), lr=1e-3)
+
+    def evaluate() -> float:
+        model.eval()
+        with torch.no_grad():
+            out = model(batch["source"], batch["target"])
+        model.train()
+        return float(rotation_angle_deg(out.rotation.double().numpy(), batch["rotation"].double().numpy()).mean())
+
+    error_before = evaluate()
+    losses = []
+    for _ in range(50):
+        loss = ifnet_losses(model(batch["source"], batch["target"]), batch["target"], TINY).total
+        optimizer.zero_grad()
+        loss.backward()
+        optimizer.step()
+        losses.append(loss.item())
+    error_after = evaluate()
+    assert np.mean(losses[-5:]) < 0.7 * np.mean(losses[:5]), losses
+    assert error_after < 0.7 * error_before, (error_before, error_after)
