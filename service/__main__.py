@@ -1,0 +1,61 @@
+"""`python -m service` / `ifnet-serve`: run the registration service with uvicorn.
+
+Every setting comes from `IFNET_*` environment variables (see service.settings); the flags
+below override them.
+"""
+
+import argparse
+import logging
+import sys
+
+from pydantic import ValidationError
+
+from service.engine import ModelLoadError, OnnxEngine
+from service.settings import Settings
+
+
+def parse_args(argv: list[str] | None) -> argparse.Namespace:
+    parser = argparse.ArgumentParser(
+        prog="ifnet-serve",
+        description="Serve IFNet point-cloud registration over HTTP. Other settings: IFNET_* environment variables.",
+    )
+    parser.add_argument("--host", help="interface to listen on (default 127.0.0.1, env IFNET_HOST)")
+    parser.add_argument("--port", type=int, help="TCP port (default 8000, env IFNET_PORT)")
+    parser.add_argument("--model-path", help="ONNX model (default: the shipped service/models/ifnet.onnx)")
+    parser.add_argument("--threads", type=int, help="ONNX Runtime intra-op threads (default: the usable CPUs)")
+    parser.add_argument("--log-level", choices=["critical", "error", "warning", "info", "debug"])
+    return parser.parse_args(argv)
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = parse_args(argv)
+    overrides = {name: value for name, value in vars(args).items() if value is not None}
+    try:
+        settings = Settings(**overrides)
+    except ValidationError as error:
+        print(f"ifnet-serve: invalid settings:\n{error}", file=sys.stderr)
+        return 2
+    logging.basicConfig(level=settings.log_level.upper(), format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    # Load the model before binding the port: a bad model path fails at once with its reason.
+    try:
+        engine = OnnxEngine(settings.model_path, settings.threads)
+    except ModelLoadError as error:
+        print(f"ifnet-serve: cannot start: {error}", file=sys.stderr)
+        return 1
+
+    import uvicorn
+
+    from service.app import create_app
+
+    uvicorn.run(
+        create_app(settings, engine=engine),
+        host=settings.host,
+        port=settings.port,
+        log_level=settings.log_level,
+        timeout_graceful_shutdown=int(settings.shutdown_timeout_s),
+    )
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

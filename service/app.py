@@ -1,0 +1,195 @@
+"""The FastAPI application: factory, lifespan (load, warm up, drain on shutdown) and error answers."""
+
+import asyncio
+import logging
+from collections.abc import AsyncIterator
+from contextlib import asynccontextmanager
+
+from fastapi import FastAPI, HTTPException, Request
+from fastapi.exceptions import RequestValidationError
+from fastapi.openapi.utils import get_openapi
+from fastapi.responses import JSONResponse
+from pydantic import ValidationError
+
+from service import __version__
+from service.batcher import InferenceError, MicroBatcher, QueueFullError, RequestTimeoutError, ShuttingDownError
+from service.engine import Engine, OnnxEngine
+from service.formats import UnsupportedFormat
+from service.metrics import HttpMetricsMiddleware
+from service.middleware import BodyLimitMiddleware
+from service.oip import router as oip_router
+from service.registration import InvalidInput, RegistrationFailed
+from service.routes import router
+from service.schemas import RegisterRequest
+from service.settings import Settings
+from service.state import ClientDisconnected, ServiceState
+
+logger = logging.getLogger(__name__)
+
+DESCRIPTION = """
+Rigid registration of two point clouds with IFNet, run by ONNX Runtime.
+
+`POST /register` returns (R, t) with `target ~ source @ R^T + t` in the clouds' own units, plus
+Open3D-style fitness and inlier RMSE. Requests are batched; `/health`, `/ready` and `/metrics`
+serve operations, and `/v2/...` speaks the Open Inference Protocol.
+"""
+
+
+async def _become_ready(state: ServiceState, batcher: MicroBatcher) -> None:
+    """Warm the model up at every batch size, then start serving the queue and report ready."""
+    try:
+        if state.settings.warmup:
+            await batcher.warm_up(state.model.native_num_points)
+    except Exception as error:
+        state.warmup_error = f"warm-up failed: {error}"
+        logger.exception("model warm-up failed; the service stays not ready")
+        return
+    batcher.start()
+    state.ready.set()
+    state.metrics.ready.set(1)
+
+
+def _lifespan(engine: Engine | None):
+    @asynccontextmanager
+    async def lifespan(app: FastAPI) -> AsyncIterator[None]:
+        state: ServiceState = app.state.service
+        settings = state.settings
+        # A missing or corrupt model raises ModelLoadError here, so startup fails with its message.
+        state.engine = engine or await asyncio.to_thread(OnnxEngine, settings.model_path, settings.threads)
+        state.batcher = MicroBatcher(
+            state.engine,
+            max_batch_size=settings.max_batch_size,
+            max_queue_size=settings.max_queue_size,
+            max_batch_delay_ms=settings.max_batch_delay_ms,
+            metrics=state.metrics,
+        )
+        info = state.model
+        state.metrics.model.info(
+            {"name": info.name, "version": info.version, "native_num_points": str(info.native_num_points)}
+        )
+        becoming_ready = asyncio.create_task(_become_ready(state, state.batcher))
+        try:
+            yield
+        finally:
+            # The server has stopped accepting connections and waited for in-flight requests;
+            # finish whatever is still queued, then stop the worker.
+            state.accepting = False
+            state.ready.clear()
+            state.metrics.ready.set(0)
+            becoming_ready.cancel()
+            await asyncio.wait({becoming_ready})
+            await state.batcher.close(settings.shutdown_timeout_s)
+            logger.info("batcher drained; shutting down")
+
+    return lifespan
+
+
+def _error(request: Request, status: int, detail: str, errors=(), headers: dict | None = None) -> JSONResponse:
+    """One error shape per API: {"error": ...} on the v2 routes, {"detail", "errors"} elsewhere."""
+    if request.url.path.startswith("/v2"):
+        return JSONResponse({"error": detail}, status_code=status, headers=headers)
+    return JSONResponse({"detail": detail, "errors": list(errors)}, status_code=status, headers=headers)
+
+
+def _field_errors(errors: list[dict]) -> list[dict[str, str]]:
+    found = []
+    for error in errors:
+        if error.get("type") == "json_invalid":
+            reason = (error.get("ctx") or {}).get("error") or error.get("msg", "")
+            found.append({"field": "body", "problem": f"invalid JSON: {reason}"})
+            continue
+        location = [str(part) for part in error.get("loc", ()) if part not in ("body", "query", "path", "header")]
+        found.append({"field": ".".join(location) or "body", "problem": error.get("msg", "invalid")})
+    return found
+
+
+def _install_error_handlers(app: FastAPI) -> None:
+    def validation_failed(request: Request, errors: list[dict]) -> JSONResponse:
+        fields = _field_errors(errors)
+        detail = "; ".join(f"{item['field']}: {item['problem']}" for item in fields[:5])
+        if len(fields) > 5:
+            detail += f"; and {len(fields) - 5} more"
+        return _error(request, 422, detail, fields)
+
+    @app.exception_handler(RequestValidationError)
+    async def on_request_validation(request: Request, error: RequestValidationError) -> JSONResponse:
+        return validation_failed(request, list(error.errors()))
+
+    @app.exception_handler(ValidationError)
+    async def on_validation(request: Request, error: ValidationError) -> JSONResponse:
+        return validation_failed(request, error.errors(include_url=False, include_input=False))
+
+    @app.exception_handler(InvalidInput)
+    async def on_invalid_input(request: Request, error: InvalidInput) -> JSONResponse:
+        return _error(request, 422, str(error), [{"field": error.field, "problem": error.problem}])
+
+    @app.exception_handler(UnsupportedFormat)
+    async def on_unsupported_format(request: Request, error: UnsupportedFormat) -> JSONResponse:
+        return _error(request, 415, str(error))
+
+    @app.exception_handler(RegistrationFailed)
+    async def on_registration_failed(request: Request, error: RegistrationFailed) -> JSONResponse:
+        return _error(request, 422, str(error))
+
+    @app.exception_handler(QueueFullError)
+    async def on_queue_full(request: Request, error: QueueFullError) -> JSONResponse:
+        return _error(request, 429, str(error), headers={"Retry-After": str(error.retry_after_s)})
+
+    @app.exception_handler(RequestTimeoutError)
+    async def on_timeout(request: Request, error: RequestTimeoutError) -> JSONResponse:
+        return _error(request, 504, str(error))
+
+    @app.exception_handler(ShuttingDownError)
+    async def on_shutting_down(request: Request, error: ShuttingDownError) -> JSONResponse:
+        return _error(request, 503, f"{error}; retry on another instance", headers={"Retry-After": "1"})
+
+    @app.exception_handler(ClientDisconnected)
+    async def on_disconnect(request: Request, error: ClientDisconnected) -> JSONResponse:
+        return _error(request, 499, str(error))  # nobody reads it; recorded in the metrics as 499
+
+    @app.exception_handler(InferenceError)
+    async def on_inference_error(request: Request, error: InferenceError) -> JSONResponse:
+        return _error(request, 500, f"internal error: {error}")
+
+    @app.exception_handler(HTTPException)
+    async def on_http_exception(request: Request, error: HTTPException) -> JSONResponse:
+        return _error(request, error.status_code, str(error.detail), headers=getattr(error, "headers", None))
+
+
+def _install_openapi(app: FastAPI) -> None:
+    """Add the JSON request schema of /register (its body is parsed by hand, for the binary formats)."""
+
+    def openapi() -> dict:
+        if app.openapi_schema is None:
+            schema = get_openapi(title=app.title, version=app.version, description=app.description, routes=app.routes)
+            components = schema.setdefault("components", {}).setdefault("schemas", {})
+            request_schema = RegisterRequest.model_json_schema(ref_template="#/components/schemas/{model}")
+            components.update(request_schema.pop("$defs", {}))
+            components["RegisterRequest"] = request_schema
+            app.openapi_schema = schema
+        return app.openapi_schema
+
+    app.openapi = openapi
+
+
+def create_app(settings: Settings | None = None, engine: Engine | None = None) -> FastAPI:
+    """The service as an ASGI app. Without `engine`, the lifespan loads settings.model_path."""
+    settings = settings or Settings()
+    state = ServiceState(settings)
+    app = FastAPI(title="ifnet-serve", version=__version__, description=DESCRIPTION, lifespan=_lifespan(engine))
+    app.state.service = state
+    app.include_router(router)
+    app.include_router(oip_router)
+    _install_error_handlers(app)
+    _install_openapi(app)
+    # Outermost last: metrics see every answer, including the body limit's 413.
+    app.add_middleware(BodyLimitMiddleware, max_bytes=settings.max_body_bytes)
+    static_routes = {route.path for route in (*router.routes, *oip_router.routes) if "{" not in route.path}
+    app.add_middleware(
+        HttpMetricsMiddleware,
+        metrics=state.metrics,
+        window=state.latency,
+        windowed_routes={"/register"},
+        static_routes=static_routes,
+    )
+    return app

@@ -1,0 +1,268 @@
+"""An asyncio micro-batcher in front of the model: requests queue, one worker runs them in batches.
+
+Each submitted pair gets a future. The worker takes up to `max_batch_size` waiting pairs (after
+an optional delay to let more arrive), runs one model call per input shape on a thread of its
+own so that the event loop stays free, and resolves the futures. A pair whose caller gave up
+(timeout, client disconnect) has a cancelled future: the worker skips it, or drops its result.
+"""
+
+import asyncio
+import contextlib
+import logging
+import math
+import time
+from collections import defaultdict
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from service.engine import Engine, warm_up_engine
+from service.metrics import Metrics
+from service.registration import Prediction
+
+logger = logging.getLogger(__name__)
+
+
+class QueueFullError(Exception):
+    """The queue holds max_queue_size pairs already: the client should retry after `retry_after_s`."""
+
+    def __init__(self, retry_after_s: int):
+        super().__init__(f"the service is busy: the inference queue is full; retry after {retry_after_s} s")
+        self.retry_after_s = retry_after_s
+
+
+class RequestTimeoutError(Exception):
+    """A pair waited longer than its timeout for the model."""
+
+
+class ShuttingDownError(Exception):
+    """The batcher no longer accepts work: the service is stopping."""
+
+
+class InferenceError(RuntimeError):
+    """The model call failed (a server-side fault, not the client's input)."""
+
+
+@dataclass(eq=False)
+class _Pending:
+    source: np.ndarray
+    target: np.ndarray
+    future: asyncio.Future
+    enqueued_at: float = field(default_factory=time.perf_counter)
+    taken: bool = False
+
+
+class MicroBatcher:
+    def __init__(
+        self,
+        engine: Engine,
+        *,
+        max_batch_size: int,
+        max_queue_size: int,
+        max_batch_delay_ms: float = 0.0,
+        metrics: Metrics | None = None,
+    ):
+        self.engine = engine
+        self.max_batch_size = max_batch_size
+        self.max_queue_size = max_queue_size
+        self.max_batch_delay_s = max_batch_delay_ms / 1000.0
+        self.metrics = metrics
+        self._queue: asyncio.Queue[_Pending] = asyncio.Queue()  # bounded by _waiting, see submit
+        self._waiting = 0  # queued pairs whose caller still waits
+        self._running = 0  # pairs in the model call under way
+        self._idle = asyncio.Event()
+        self._idle.set()
+        self._closing = False
+        self._worker: asyncio.Task | None = None
+        self._batch_seconds = 1.0  # running estimate of one model call, for Retry-After
+        # One thread for model calls: ORT parallelises inside a call, and calls must not overlap.
+        self._executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix="ifnet-inference")
+
+    # ------------------------------------------------------------ lifecycle
+
+    async def warm_up(self, num_points: int) -> None:
+        """One model call at every batch size the worker may use (1 .. max_batch_size)."""
+        started = time.perf_counter()
+        loop = asyncio.get_running_loop()
+        await loop.run_in_executor(
+            self._executor, warm_up_engine, self.engine, range(1, self.max_batch_size + 1), num_points
+        )
+        logger.info("warm-up of batch sizes 1..%d took %.2f s", self.max_batch_size, time.perf_counter() - started)
+
+    def start(self) -> None:
+        if self._worker is None:
+            self._worker = asyncio.get_running_loop().create_task(self._work(), name="ifnet-batcher")
+
+    async def close(self, grace_s: float) -> None:
+        """Stop accepting pairs, let queued and running ones finish (up to grace_s), then stop."""
+        self._closing = True
+        try:
+            await asyncio.wait_for(self._idle.wait(), grace_s)
+        except TimeoutError:
+            logger.warning("batcher: %d pairs still waiting after %.1f s; abandoning them", self._waiting, grace_s)
+        if self._worker is not None:
+            self._worker.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await self._worker
+        while not self._queue.empty():
+            pending = self._queue.get_nowait()
+            if not pending.future.done():
+                pending.future.set_exception(ShuttingDownError("the service stopped before this request ran"))
+        self._executor.shutdown(wait=False, cancel_futures=True)
+
+    # ------------------------------------------------------------ clients
+
+    @property
+    def queue_depth(self) -> int:
+        return self._waiting
+
+    @property
+    def accepting(self) -> bool:
+        return not self._closing
+
+    def retry_after_s(self) -> int:
+        """Rough time until the queue has room again: the batches ahead times a recent batch duration."""
+        batches_ahead = math.ceil(self._waiting / self.max_batch_size) + 1
+        return max(1, math.ceil(batches_ahead * self._batch_seconds))
+
+    async def submit(self, source: np.ndarray, target: np.ndarray, timeout_s: float | None = None) -> Prediction:
+        """Queue one normalised pair ([N, 3], [M, 3] float32) and wait for the model's answer.
+
+        Raises QueueFullError when the queue is full, RequestTimeoutError after timeout_s, and
+        ShuttingDownError once close() has begun. Cancelling the caller drops the pair.
+        """
+        if self._closing:
+            raise ShuttingDownError("the service is shutting down")
+        if self._waiting >= self.max_queue_size:
+            self._reject("queue_full")
+            raise QueueFullError(self.retry_after_s())
+        pending = _Pending(source, target, asyncio.get_running_loop().create_future())
+        pending.future.add_done_callback(lambda _: self._forget(pending))
+        self._waiting += 1
+        self._idle.clear()
+        self._update_depth()
+        self._queue.put_nowait(pending)
+        try:
+            return await asyncio.wait_for(pending.future, timeout_s)
+        except TimeoutError:
+            self._reject("timeout")
+            raise RequestTimeoutError(
+                f"no model result within {timeout_s:g} s (the service is overloaded); retry later"
+            ) from None
+        except asyncio.CancelledError:
+            self._reject("cancelled")
+            raise
+
+    # ------------------------------------------------------------ worker
+
+    def _forget(self, pending: _Pending) -> None:
+        """Done callback: a pair cancelled while still queued no longer counts as waiting."""
+        if not pending.taken:
+            pending.taken = True
+            self._waiting -= 1
+            self._update_depth()
+            self._check_idle()
+
+    def _take(self, pending: _Pending, batch: list[_Pending]) -> None:
+        if pending.taken:  # cancelled while queued: already forgotten
+            return
+        pending.taken = True
+        self._waiting -= 1
+        self._running += 1
+        batch.append(pending)
+
+    async def _fill(self, batch: list[_Pending]) -> None:
+        """Wait for a first pair, then add whatever else is waiting (after the optional delay)."""
+        while not batch:
+            self._take(await self._queue.get(), batch)
+        if self.max_batch_delay_s > 0:
+            deadline = time.perf_counter() + self.max_batch_delay_s
+            while len(batch) < self.max_batch_size and (remaining := deadline - time.perf_counter()) > 0:
+                try:
+                    self._take(await asyncio.wait_for(self._queue.get(), remaining), batch)
+                except TimeoutError:
+                    break
+        while len(batch) < self.max_batch_size and not self._queue.empty():
+            self._take(self._queue.get_nowait(), batch)
+
+    async def _work(self) -> None:
+        batch: list[_Pending] = []
+        try:
+            while True:
+                batch = []
+                await self._fill(batch)
+                self._update_depth()
+                try:
+                    await self._run(batch)
+                except Exception as error:  # a bug here must not stop the worker for everyone else
+                    logger.exception("batch of %d failed", len(batch))
+                    self._fail(batch, InferenceError(f"inference failed: {error}"))
+                self._running = 0
+                self._check_idle()
+        except asyncio.CancelledError:
+            self._fail(batch, ShuttingDownError("the service stopped before this request finished"))
+            raise
+
+    @staticmethod
+    def _fail(batch: list[_Pending], error: Exception) -> None:
+        for pending in batch:
+            if not pending.future.done():
+                pending.future.set_exception(error)
+
+    async def _run(self, batch: list[_Pending]) -> None:
+        # Pairs stack only when their point counts agree (requests may choose max_points).
+        groups: dict[tuple, list[_Pending]] = defaultdict(list)
+        for pending in batch:
+            groups[(pending.source.shape, pending.target.shape)].append(pending)
+        loop = asyncio.get_running_loop()
+        for items in groups.values():
+            items = [pending for pending in items if not pending.future.done()]  # callers may have left
+            if not items:
+                continue
+            started = time.perf_counter()
+            source = np.stack([pending.source for pending in items])
+            target = np.stack([pending.target for pending in items])
+            try:
+                rotation, translation = await loop.run_in_executor(self._executor, self.engine.run, source, target)
+                rotation, translation = np.asarray(rotation), np.asarray(translation)
+                if rotation.shape != (len(items), 3, 3) or translation.shape != (len(items), 3):
+                    raise InferenceError(
+                        f"model returned rotation {rotation.shape} and translation {translation.shape} "
+                        f"for a batch of {len(items)}"
+                    )
+            except Exception as error:
+                logger.exception("model call on a batch of %d failed", len(items))
+                self._fail(items, InferenceError(f"inference failed: {error}"))
+                continue
+            seconds = time.perf_counter() - started
+            self._batch_seconds = 0.8 * self._batch_seconds + 0.2 * seconds
+            if self.metrics is not None:
+                self.metrics.batch_size.observe(len(items))
+                self.metrics.inference.observe(seconds)
+            for index, pending in enumerate(items):
+                queued = started - pending.enqueued_at
+                if self.metrics is not None:
+                    self.metrics.queue_wait.observe(queued)
+                if not pending.future.done():
+                    pending.future.set_result(
+                        Prediction(
+                            rotation=rotation[index].astype(np.float64),
+                            translation=translation[index].astype(np.float64),
+                            queue_ms=queued * 1000.0,
+                            inference_ms=seconds * 1000.0,
+                            batch_size=len(items),
+                        )
+                    )
+
+    def _check_idle(self) -> None:
+        if self._waiting == 0 and self._running == 0:
+            self._idle.set()
+
+    def _update_depth(self) -> None:
+        if self.metrics is not None:
+            self.metrics.queue_depth.set(self._waiting)
+
+    def _reject(self, reason: str) -> None:
+        if self.metrics is not None:
+            self.metrics.rejections.labels(reason).inc()

@@ -1,0 +1,172 @@
+"""A small Python client for the service, and the `ifnet-register` command line.
+
+    ifnet-register source.ply target.ply --url http://127.0.0.1:8000 [--refine] [--output aligned.ply]
+
+prints the 4x4 transform that moves the source onto the target, and its fitness.
+"""
+
+import argparse
+import json
+import os
+import sys
+from pathlib import Path
+from typing import Any
+
+import httpx
+import numpy as np
+
+DEFAULT_URL = "http://127.0.0.1:8000"
+
+
+class RegistrationError(Exception):
+    """The service answered with an error; `status` is the HTTP code, `detail` its explanation."""
+
+    def __init__(self, status: int, detail: str):
+        super().__init__(f"HTTP {status}: {detail}")
+        self.status = status
+        self.detail = detail
+
+
+def _options(
+    init: Any = None,
+    refine: bool | dict | None = None,
+    max_points: int | None = None,
+    sampling: str | None = None,
+    seed: int | None = None,
+    fitness_threshold: float | None = None,
+) -> dict[str, Any]:
+    values = {
+        "init": None if init is None else np.asarray(init, dtype=float).tolist(),
+        "refine": refine,
+        "max_points": max_points,
+        "sampling": sampling,
+        "seed": seed,
+        "fitness_threshold": fitness_threshold,
+    }
+    return {name: value for name, value in values.items() if value is not None}
+
+
+class RegistrationClient:
+    """Registers point clouds with a running ifnet-serve instance."""
+
+    def __init__(
+        self,
+        url: str = DEFAULT_URL,
+        api_key: str | None = None,
+        timeout_s: float = 120.0,
+        transport: httpx.BaseTransport | None = None,
+    ):
+        headers = {"X-API-Key": api_key} if api_key else {}
+        self._http = httpx.Client(base_url=url, headers=headers, timeout=timeout_s, transport=transport)
+
+    def __enter__(self) -> "RegistrationClient":
+        return self
+
+    def __exit__(self, *exc_info: object) -> None:
+        self.close()
+
+    def close(self) -> None:
+        self._http.close()
+
+    def register(self, source: np.ndarray, target: np.ndarray, **options: Any) -> dict[str, Any]:
+        """Register two [N, 3] arrays; options as in /register (init, refine, max_points, sampling, seed, ...)."""
+        body = {"source": np.asarray(source).tolist(), "target": np.asarray(target).tolist(), **_options(**options)}
+        return self._answer(self._http.post("/register", json=body))
+
+    def register_files(self, source: str | Path, target: str | Path, **options: Any) -> dict[str, Any]:
+        """Register two PLY, PCD or NPY files, uploaded as they are."""
+        source, target = Path(source), Path(target)
+        files = {
+            "source": (source.name, source.read_bytes(), "application/octet-stream"),
+            "target": (target.name, target.read_bytes(), "application/octet-stream"),
+        }
+        data = {"options": json.dumps(_options(**options))}
+        return self._answer(self._http.post("/register", files=files, data=data))
+
+    def health(self) -> dict[str, Any]:
+        return self._answer(self._http.get("/health"))
+
+    def ready(self) -> bool:
+        return self._http.get("/ready").status_code == 200
+
+    @staticmethod
+    def _answer(response: httpx.Response) -> dict[str, Any]:
+        if response.is_success:
+            return response.json()
+        try:
+            detail = response.json().get("detail") or response.text
+        except ValueError:
+            detail = response.text
+        raise RegistrationError(response.status_code, str(detail))
+
+
+def _load_matrix(path: str) -> np.ndarray:
+    if path.endswith(".npy"):
+        return np.load(path, allow_pickle=False)
+    return np.loadtxt(path)
+
+
+def format_report(result: dict[str, Any]) -> str:
+    rows = ["transform (source -> target):"]
+    rows += ["  " + " ".join(f"{value: .6f}" for value in row) for row in result["transform"]]
+    rows.append(
+        f"fitness {result['fitness']:.4f}  inlier_rmse {result['inlier_rmse']:.6g}  "
+        f"(threshold {result['fitness_threshold']:.6g})"
+    )
+    model, timings = result["model"], result["timings_ms"]
+    rows.append(f"model {model['name']} {model['version']}  total {timings['total_ms']:.0f} ms")
+    return "\n".join(rows)
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="ifnet-register", description="Register two point clouds with ifnet-serve.")
+    parser.add_argument("source", help="cloud to move (PLY, PCD or NPY)")
+    parser.add_argument("target", help="cloud to align to (PLY, PCD or NPY)")
+    parser.add_argument("--url", default=os.environ.get("IFNET_URL", DEFAULT_URL), help="service URL (env IFNET_URL)")
+    parser.add_argument("--api-key", default=os.environ.get("IFNET_API_KEY"), help="API key (env IFNET_API_KEY)")
+    parser.add_argument("--init", help="initial 4x4 guess: a .npy file or a text file of 4 rows")
+    parser.add_argument("--refine", action="store_true", help="refine with ICP on the full clouds")
+    parser.add_argument("--refine-distance", type=float, help="ICP correspondence distance, in the clouds' units")
+    parser.add_argument("--max-points", type=int, help="points per cloud given to the network")
+    parser.add_argument("--sampling", choices=["fps", "random"])
+    parser.add_argument("--seed", type=int)
+    parser.add_argument("--output", help="write the moved source cloud to this PLY file")
+    parser.add_argument("--json", action="store_true", help="print the service's whole JSON answer")
+    parser.add_argument("--timeout", type=float, default=120.0, help="seconds to wait for the answer")
+    args = parser.parse_args(argv)
+
+    refine: bool | dict | None = None
+    if args.refine or args.refine_distance is not None:
+        refine = {"max_distance": args.refine_distance} if args.refine_distance is not None else True
+    try:
+        init = _load_matrix(args.init) if args.init else None
+        with RegistrationClient(args.url, args.api_key, args.timeout) as client:
+            result = client.register_files(
+                args.source,
+                args.target,
+                init=init,
+                refine=refine,
+                max_points=args.max_points,
+                sampling=args.sampling,
+                seed=args.seed,
+            )
+    except RegistrationError as error:
+        print(f"ifnet-register: the service refused: {error}", file=sys.stderr)
+        return 1
+    except (OSError, ValueError, httpx.HTTPError) as error:
+        print(f"ifnet-register: {error}", file=sys.stderr)
+        return 1
+
+    print(json.dumps(result, indent=2) if args.json else format_report(result))
+    if args.output:
+        from service.formats import read_cloud_file, write_ply
+
+        transform = np.asarray(result["transform"])
+        source = read_cloud_file(args.source)
+        write_ply(args.output, source @ transform[:3, :3].T + transform[:3, 3])
+        print(f"moved source written to {args.output}", file=sys.stderr)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

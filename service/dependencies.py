@@ -1,0 +1,42 @@
+"""FastAPI dependencies: the shared service state (engine, batcher, settings) and the API key check."""
+
+import secrets
+from typing import Annotated
+
+from fastapi import Depends, Header, HTTPException, Request
+
+from service.state import ServiceState
+
+
+def get_service(request: Request) -> ServiceState:
+    return request.app.state.service
+
+
+def get_loaded_service(service: Annotated[ServiceState, Depends(get_service)]) -> ServiceState:
+    """The service once its model is loaded (requests queue during warm-up and run after it)."""
+    if service.engine is None or service.batcher is None:
+        raise HTTPException(503, "the model is not loaded yet; retry shortly", headers={"Retry-After": "1"})
+    return service
+
+
+def require_api_key(
+    service: Annotated[ServiceState, Depends(get_service)],
+    x_api_key: Annotated[str | None, Header(description="The API key, if the service requires one.")] = None,
+    authorization: Annotated[str | None, Header(description="Alternatively `Bearer <API key>`.")] = None,
+) -> None:
+    expected = service.settings.api_key
+    if expected is None:
+        return
+    given = x_api_key
+    if given is None and authorization and authorization.lower().startswith("bearer "):
+        given = authorization[7:].strip()
+    if given is None or not secrets.compare_digest(given.encode(), expected.get_secret_value().encode()):
+        raise HTTPException(
+            401,
+            "missing or wrong API key: send it in the X-API-Key header (or Authorization: Bearer <key>)",
+            headers={"WWW-Authenticate": "Bearer"},
+        )
+
+
+Service = Annotated[ServiceState, Depends(get_service)]
+LoadedService = Annotated[ServiceState, Depends(get_loaded_service)]

@@ -1,0 +1,253 @@
+"""The ONNX Runtime session behind the service: loading, model metadata, thread count, warm-up."""
+
+import hashlib
+import json
+import logging
+import math
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Protocol
+
+import numpy as np
+
+logger = logging.getLogger(__name__)
+
+REQUIRED_INPUTS = ("source", "target")
+REQUIRED_OUTPUTS = ("rotation", "translation")
+DEFAULT_NATIVE_POINTS = 768
+ORT_TO_V2_DATATYPE = {"tensor(float)": "FP32", "tensor(double)": "FP64", "tensor(int64)": "INT64"}
+
+
+class ModelLoadError(RuntimeError):
+    """The model file is missing, unreadable or does not follow the IFNet ONNX contract."""
+
+
+@dataclass(frozen=True)
+class TensorSpec:
+    name: str
+    datatype: str  # Open Inference Protocol name, e.g. "FP32"
+    shape: list[int]  # -1 where the dimension is dynamic
+
+
+@dataclass(frozen=True)
+class ModelInfo:
+    name: str
+    native_num_points: int
+    file_sha256: str
+    path: str
+    inputs: list[TensorSpec]
+    outputs: list[TensorSpec]
+    preset: str | None = None
+    weights_sha256: str | None = None
+    opset: str | None = None
+    export_date: str | None = None
+    config: dict | None = None
+    metadata: dict[str, str] = field(default_factory=dict)
+
+    @property
+    def version(self) -> str:
+        """Short, stable identifier of the weights (of the file when the export did not record them)."""
+        return (self.weights_sha256 or self.file_sha256)[:12]
+
+
+class Engine(Protocol):
+    """What the batcher needs from a model: metadata and one batched forward pass."""
+
+    info: ModelInfo
+
+    def run(self, source: np.ndarray, target: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """[B, N, 3] and [B, M, 3] float32 -> rotations [B, 3, 3] and translations [B, 3]."""
+        ...
+
+
+# ---------------------------------------------------------------- CPUs this process may use
+
+
+def cgroup_cpu_limit(
+    root: Path = Path("/sys/fs/cgroup"), proc_cgroup: Path = Path("/proc/self/cgroup")
+) -> float | None:
+    """CPUs granted by a cgroup CPU quota (v2 `cpu.max` or v1 `cpu.cfs_quota_us`), or None without one.
+
+    The tightest quota along this process's cgroup path counts; inside a container the path is
+    usually "/", so the container's own limit is read at the mount root.
+    """
+    try:
+        lines = proc_cgroup.read_text().splitlines()
+    except OSError:
+        return None
+    limits: list[float] = []
+    for line in lines:
+        parts = line.split(":", 2)
+        if len(parts) != 3:
+            continue
+        hierarchy, controllers, relative = parts
+        if hierarchy == "0" and controllers == "":
+            base, reader = root, _read_cpu_max
+        elif "cpu" in controllers.split(","):
+            base = next((root / name for name in (controllers, "cpu", "cpu,cpuacct") if (root / name).is_dir()), None)
+            if base is None:
+                continue
+            reader = _read_cfs_quota
+        else:
+            continue
+        directory = base / relative.lstrip("/")
+        while True:
+            if (limit := reader(directory)) is not None:
+                limits.append(limit)
+            if directory == base or base not in directory.parents:
+                break
+            directory = directory.parent
+    return min(limits) if limits else None
+
+
+def _read_cpu_max(directory: Path) -> float | None:
+    try:
+        quota, period = (directory / "cpu.max").read_text().split()[:2]
+    except (OSError, ValueError):
+        return None
+    return None if quota == "max" else int(quota) / int(period)
+
+
+def _read_cfs_quota(directory: Path) -> float | None:
+    try:
+        quota = int((directory / "cpu.cfs_quota_us").read_text())
+        period = int((directory / "cpu.cfs_period_us").read_text())
+    except (OSError, ValueError):
+        return None
+    return None if quota <= 0 or period <= 0 else quota / period
+
+
+def available_cpus() -> int:
+    """CPUs this process may actually use: its affinity mask, capped by any cgroup quota.
+
+    os.cpu_count() would report the host's cores, far more than a container is allowed.
+    """
+    try:
+        cpus = len(os.sched_getaffinity(0))
+    except AttributeError:  # not Linux
+        cpus = os.cpu_count() or 1
+    if (quota := cgroup_cpu_limit()) is not None:
+        cpus = min(cpus, math.floor(quota))
+    return max(1, cpus)
+
+
+# ---------------------------------------------------------------- the ONNX Runtime engine
+
+
+def file_sha256(path: Path) -> str:
+    digest = hashlib.sha256()
+    with path.open("rb") as stream:
+        for chunk in iter(lambda: stream.read(1 << 20), b""):
+            digest.update(chunk)
+    return digest.hexdigest()
+
+
+def _tensor_specs(nodes) -> list[TensorSpec]:
+    return [
+        TensorSpec(
+            name=node.name,
+            datatype=ORT_TO_V2_DATATYPE.get(node.type, node.type),
+            shape=[dim if isinstance(dim, int) else -1 for dim in node.shape],
+        )
+        for node in nodes
+    ]
+
+
+def _native_num_points(metadata: dict[str, str], path: Path) -> int:
+    value = metadata.get("num_points")
+    if value is None:
+        logger.warning(
+            "model %s has no `num_points` metadata; resampling clouds to %d points", path, DEFAULT_NATIVE_POINTS
+        )
+        return DEFAULT_NATIVE_POINTS
+    try:
+        count = int(value)
+        if count < 1:
+            raise ValueError
+    except ValueError:
+        raise ModelLoadError(f"model {path}: metadata num_points={value!r} is not a positive integer") from None
+    return count
+
+
+class OnnxEngine:
+    """One ONNX Runtime session with graph optimisations on and intra-op threads sized to this process."""
+
+    def __init__(self, path: Path, threads: int | None = None):
+        import onnxruntime as ort  # heavy import, kept out of modules that only need the types above
+
+        path = Path(path)
+        if not path.is_file():
+            raise ModelLoadError(
+                f"model file {path} does not exist: set IFNET_MODEL_PATH (or --model-path) to an IFNet ONNX export"
+            )
+        self.threads = threads or available_cpus()
+        options = ort.SessionOptions()
+        options.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
+        options.intra_op_num_threads = self.threads
+        options.inter_op_num_threads = 1  # one model call at a time: the batcher serialises them
+        try:
+            self.session = ort.InferenceSession(str(path), options, providers=["CPUExecutionProvider"])
+        except Exception as error:  # onnxruntime raises its own exception types for corrupt files
+            raise ModelLoadError(f"model file {path} could not be loaded by onnxruntime: {error}") from error
+
+        inputs, outputs = self.session.get_inputs(), self.session.get_outputs()
+        missing_in = set(REQUIRED_INPUTS) - {node.name for node in inputs}
+        missing_out = set(REQUIRED_OUTPUTS) - {node.name for node in outputs}
+        if missing_in or missing_out:
+            raise ModelLoadError(
+                f"model file {path} is not an IFNet registration export: it lacks inputs {sorted(missing_in)} "
+                f"and/or outputs {sorted(missing_out)} (has inputs {[n.name for n in inputs]}, "
+                f"outputs {[n.name for n in outputs]})"
+            )
+        metadata = dict(self.session.get_modelmeta().custom_metadata_map)
+        if not metadata:
+            logger.warning(
+                "model %s has no metadata (model_name, weights_sha256, ...): is it a development export?", path
+            )
+        config = None
+        if "config" in metadata:
+            try:
+                config = json.loads(metadata["config"])
+            except json.JSONDecodeError:
+                logger.warning("model %s: metadata `config` is not JSON; ignoring it", path)
+        by_name = {spec.name: spec for spec in _tensor_specs(inputs) + _tensor_specs(outputs)}
+        self.info = ModelInfo(
+            name=metadata.get("model_name", "ifnet"),
+            native_num_points=_native_num_points(metadata, path),
+            file_sha256=file_sha256(path),
+            path=str(path),
+            inputs=[by_name[name] for name in REQUIRED_INPUTS],
+            outputs=[by_name[name] for name in REQUIRED_OUTPUTS],
+            preset=metadata.get("preset"),
+            weights_sha256=metadata.get("weights_sha256"),
+            opset=metadata.get("opset"),
+            export_date=metadata.get("export_date"),
+            config=config,
+            metadata=metadata,
+        )
+        logger.info(
+            "loaded model %s (%s, version %s, %d native points) with %d ORT threads",
+            path,
+            self.info.name,
+            self.info.version,
+            self.info.native_num_points,
+            self.threads,
+        )
+
+    def run(self, source: np.ndarray, target: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        rotation, translation = self.session.run(
+            list(REQUIRED_OUTPUTS),
+            {"source": np.ascontiguousarray(source, np.float32), "target": np.ascontiguousarray(target, np.float32)},
+        )
+        return rotation, translation
+
+
+def warm_up_engine(engine: Engine, batch_sizes: range | list[int], num_points: int) -> None:
+    """One model call at each batch size, so the first real requests pay no allocation or tuning cost."""
+    rng = np.random.default_rng(0)
+    for batch_size in batch_sizes:
+        # Distinct random points in the unit ball: all-zero inputs would make every kNN a tie.
+        points = rng.normal(size=(2, batch_size, num_points, 3)).astype(np.float32)
+        points /= np.linalg.norm(points, axis=-1, keepdims=True).max()
+        engine.run(points[0], points[1])

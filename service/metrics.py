@@ -1,0 +1,133 @@
+"""Prometheus metrics and the recent-latency window that /health reports."""
+
+import time
+from collections import deque
+
+import numpy as np
+from prometheus_client import CONTENT_TYPE_LATEST, CollectorRegistry, Counter, Gauge, Histogram, Info, generate_latest
+from starlette.types import ASGIApp, Message, Receive, Scope, Send
+
+LATENCY_BUCKETS = (0.01, 0.025, 0.05, 0.075, 0.1, 0.15, 0.2, 0.3, 0.5, 0.75, 1.0, 2.0, 5.0, 10.0, 30.0)
+
+
+class Metrics:
+    """The service's metrics, in a registry of their own so that several apps (tests) can coexist."""
+
+    def __init__(self, max_batch_size: int):
+        self.registry = CollectorRegistry()
+        self.requests = Counter(
+            "ifnet_http_requests",
+            "HTTP requests by route and status code.",
+            ["method", "route", "status"],
+            registry=self.registry,
+        )
+        self.request_latency = Histogram(
+            "ifnet_http_request_duration_seconds",
+            "Time to answer an HTTP request.",
+            ["route"],
+            buckets=LATENCY_BUCKETS,
+            registry=self.registry,
+        )
+        self.queue_wait = Histogram(
+            "ifnet_queue_wait_seconds",
+            "Time a pair waited in the batcher's queue before its model call.",
+            buckets=LATENCY_BUCKETS,
+            registry=self.registry,
+        )
+        self.inference = Histogram(
+            "ifnet_inference_seconds",
+            "Duration of one ONNX Runtime call (a whole batch).",
+            buckets=LATENCY_BUCKETS,
+            registry=self.registry,
+        )
+        self.batch_size = Histogram(
+            "ifnet_batch_size",
+            "Pairs per model call.",
+            buckets=tuple(range(1, max_batch_size + 1)),
+            registry=self.registry,
+        )
+        self.queue_depth = Gauge("ifnet_queue_depth", "Pairs waiting for the model.", registry=self.registry)
+        self.rejections = Counter(
+            "ifnet_batcher_rejections",
+            "Pairs the batcher did not run, by reason.",
+            ["reason"],
+            registry=self.registry,
+        )
+        self.ready = Gauge("ifnet_ready", "1 once the model is loaded and warmed up.", registry=self.registry)
+        self.model = Info("ifnet_model", "The served model.", registry=self.registry)
+
+    def render(self) -> tuple[bytes, str]:
+        return generate_latest(self.registry), CONTENT_TYPE_LATEST
+
+
+class LatencyWindow:
+    """Durations of the most recent requests, for cheap percentiles in /health."""
+
+    def __init__(self, size: int):
+        self._durations: deque[float] = deque(maxlen=size)
+
+    def add(self, seconds: float) -> None:
+        self._durations.append(seconds)
+
+    def summary(self) -> dict[str, float | int | None]:
+        if not self._durations:
+            return {"count": 0, "p50_ms": None, "p95_ms": None, "p99_ms": None}
+        p50, p95, p99 = np.percentile(np.fromiter(self._durations, float), [50, 95, 99]) * 1000.0
+        return {"count": len(self._durations), "p50_ms": float(p50), "p95_ms": float(p95), "p99_ms": float(p99)}
+
+
+class HttpMetricsMiddleware:
+    """Counts every HTTP response by route template and status, and times it.
+
+    Routes are labelled by their template (/v2/models/{model_name}/infer), never the raw path,
+    so that the label set stays small whatever clients send. Requests that match the
+    `windowed_routes` and succeed also feed the /health latency window.
+    """
+
+    def __init__(
+        self,
+        app: ASGIApp,
+        metrics: Metrics,
+        window: LatencyWindow,
+        windowed_routes: set[str],
+        static_routes: set[str] = frozenset(),
+    ):
+        self.app = app
+        self.metrics = metrics
+        self.window = window
+        self.windowed_routes = windowed_routes
+        self.static_routes = static_routes  # paths without parameters, for answers given before routing
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if scope["type"] != "http":
+            await self.app(scope, receive, send)
+            return
+        started = time.perf_counter()
+        status = 500  # what the client sees if the app raises before answering
+
+        async def send_and_record(message: Message) -> None:
+            nonlocal status
+            if message["type"] == "http.response.start":
+                status = message["status"]
+            await send(message)
+
+        try:
+            await self.app(scope, receive, send_and_record)
+        finally:
+            route = self._route_template(scope)
+            elapsed = time.perf_counter() - started
+            self.metrics.requests.labels(scope["method"], route, str(status)).inc()
+            self.metrics.request_latency.labels(route).observe(elapsed)
+            if route in self.windowed_routes and 200 <= status < 300:
+                self.window.add(elapsed)
+
+    def _route_template(self, scope: Scope) -> str:
+        route = scope.get("route")  # set by the router once it has matched
+        if route is not None and isinstance(getattr(route, "path", None), str):
+            return route.path
+        endpoint = scope.get("endpoint")
+        for candidate in getattr(scope.get("app"), "routes", ()):
+            if getattr(candidate, "endpoint", None) is endpoint and endpoint is not None:
+                return candidate.path
+        # Not routed (e.g. a 413 from the body limit): a known static path is still a safe label.
+        return scope["path"] if scope["path"] in self.static_routes else "unmatched"

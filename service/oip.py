@@ -1,0 +1,148 @@
+"""Open Inference Protocol (KServe v2) routes, sharing /register's pipeline and batcher.
+
+The v2 model takes clouds in the user's units, like /register: `source` [B, N, 3] and `target`
+[B, M, 3] FP32 (or [N, 3] for one pair), and answers `rotation` [B, 3, 3] and `translation`
+[B, 3] FP32. Each pair is deduplicated, resampled and normalised exactly as /register does.
+"""
+
+from typing import Annotated
+
+import numpy as np
+from fastapi import APIRouter, Depends, HTTPException, Path, Request
+from fastapi.responses import JSONResponse
+
+from service import __version__
+from service.dependencies import LoadedService, Service, require_api_key
+from service.registration import InvalidInput
+from service.schemas import (
+    RegistrationOptions,
+    V2Error,
+    V2InferRequest,
+    V2InferResponse,
+    V2Live,
+    V2ModelMetadata,
+    V2Ready,
+    V2ServerMetadata,
+    V2Tensor,
+    V2TensorMetadata,
+)
+
+router = APIRouter(prefix="/v2", tags=["open inference protocol v2"])
+
+INPUTS = [V2TensorMetadata(name=name, datatype="FP32", shape=[-1, -1, 3]) for name in ("source", "target")]
+OUTPUTS = [
+    V2TensorMetadata(name="rotation", datatype="FP32", shape=[-1, 3, 3]),
+    V2TensorMetadata(name="translation", datatype="FP32", shape=[-1, 3]),
+]
+_ERRORS = {status: {"model": V2Error} for status in (401, 404, 413, 422, 429, 503, 504)}
+
+ModelName = Annotated[str, Path(description="The served model's name.", examples=["ifnet"])]
+
+
+def _check_name(model_name: str, service: LoadedService) -> None:
+    if model_name != service.model.name:
+        raise HTTPException(404, f"model {model_name!r} is not served here; this server serves {service.model.name!r}")
+
+
+@router.get("", response_model=V2ServerMetadata, summary="Server metadata")
+async def server_metadata() -> V2ServerMetadata:
+    return V2ServerMetadata(name="ifnet-serve", version=__version__, extensions=[])
+
+
+@router.get("/health/live", response_model=V2Live, summary="Server liveness")
+async def live() -> V2Live:
+    return V2Live(live=True)
+
+
+@router.get("/health/ready", response_model=V2Ready, responses={503: {"model": V2Ready}}, summary="Server readiness")
+async def server_ready(service: Service) -> JSONResponse:
+    is_ready = service.ready.is_set()
+    return JSONResponse(V2Ready(ready=is_ready).model_dump(), status_code=200 if is_ready else 503)
+
+
+@router.get(
+    "/models/{model_name}/ready", response_model=V2Ready, responses={503: {"model": V2Ready}}, summary="Model readiness"
+)
+async def model_ready(model_name: ModelName, service: LoadedService) -> JSONResponse:
+    _check_name(model_name, service)
+    return await server_ready(service)
+
+
+@router.get("/models/{model_name}", response_model=V2ModelMetadata, responses=_ERRORS, summary="Model metadata")
+async def model_metadata(model_name: ModelName, service: LoadedService) -> V2ModelMetadata:
+    _check_name(model_name, service)
+    info = service.model
+    return V2ModelMetadata(
+        name=info.name,
+        versions=[info.version],
+        platform="onnxruntime_onnx",
+        inputs=INPUTS,
+        outputs=OUTPUTS,
+        parameters={
+            "native_num_points": info.native_num_points,
+            "preset": info.preset,
+            "weights_sha256": info.weights_sha256,
+            "file_sha256": info.file_sha256,
+            "units": "inputs and translation in the caller's units; clouds are normalised server-side",
+        },
+    )
+
+
+def _clouds(tensor: V2Tensor) -> np.ndarray:
+    """[B, N, 3] float64 from a v2 FP32 tensor ([N, 3] counts as one pair)."""
+    name = tensor.name
+    if tensor.datatype != "FP32":
+        raise InvalidInput(name, f"datatype must be FP32, got {tensor.datatype}")
+    shape = tensor.shape
+    if len(shape) not in (2, 3) or shape[-1] != 3 or any(size < 1 for size in shape):
+        raise InvalidInput(name, f"shape must be [B, N, 3] or [N, 3], got {shape}")
+    try:
+        data = np.asarray(tensor.data, dtype=np.float32)
+    except (ValueError, TypeError):
+        raise InvalidInput(name, "data must be numbers (flat or nested row-major)") from None
+    if data.size != int(np.prod(shape)):
+        raise InvalidInput(name, f"data has {data.size} values but shape {shape} needs {int(np.prod(shape))}")
+    return data.reshape(shape if len(shape) == 3 else [1, *shape]).astype(np.float64)
+
+
+@router.post(
+    "/models/{model_name}/infer",
+    response_model=V2InferResponse,
+    responses=_ERRORS,
+    dependencies=[Depends(require_api_key)],
+    summary="Register point clouds (v2 inference)",
+)
+async def infer(
+    model_name: ModelName, payload: V2InferRequest, request: Request, service: LoadedService
+) -> V2InferResponse:
+    """Same pipeline and batcher as /register; `parameters` may set `max_points`, `sampling` and `seed`."""
+    _check_name(model_name, service)
+    tensors = {tensor.name: tensor for tensor in payload.inputs}
+    for name in ("source", "target"):
+        if name not in tensors:
+            raise InvalidInput(name, f"missing input tensor (got {sorted(tensors)})")
+    unknown = sorted(set(tensors) - {"source", "target"})
+    if unknown:
+        raise InvalidInput(unknown[0], "unknown input tensor; the inputs are `source` and `target`")
+    for requested in payload.outputs or []:
+        if requested.name not in ("rotation", "translation"):
+            raise InvalidInput("outputs", f"unknown output {requested.name!r}; the outputs are rotation, translation")
+    source, target = _clouds(tensors["source"]), _clouds(tensors["target"])
+    if len(source) != len(target):
+        raise InvalidInput("target", f"batch size {len(target)} differs from the source's {len(source)}")
+    options = RegistrationOptions.model_validate(payload.parameters or {})
+    results = await service.register(request, list(zip(source, target, strict=True)), options)
+    wanted = [requested.name for requested in payload.outputs] if payload.outputs else ["rotation", "translation"]
+    values = {
+        "rotation": np.stack([result.rotation for result in results]).astype(np.float32),
+        "translation": np.stack([result.translation for result in results]).astype(np.float32),
+    }
+    return V2InferResponse(
+        model_name=service.model.name,
+        model_version=service.model.version,
+        id=payload.id,
+        outputs=[
+            V2Tensor(name=name, shape=list(values[name].shape), datatype="FP32", data=values[name].ravel().tolist())
+            for name in wanted
+        ],
+    )

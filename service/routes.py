@@ -1,0 +1,186 @@
+"""The service's own routes: /register, /health, /ready and /metrics."""
+
+import time
+from typing import Annotated
+
+from fastapi import APIRouter, Depends, Query, Request, Response
+from fastapi.responses import JSONResponse
+
+from model.geometry import to_matrix
+from service.dependencies import LoadedService, Service, require_api_key
+from service.registration import RegistrationResult
+from service.schemas import (
+    EXAMPLE_SOURCE,
+    EXAMPLE_TARGET,
+    CloudPointCounts,
+    ErrorResponse,
+    HealthResponse,
+    LatencySummary,
+    ModelDescription,
+    PointCounts,
+    ReadyResponse,
+    Refinement,
+    RegisterResponse,
+    Timings,
+)
+from service.uploads import read_register_body
+
+router = APIRouter()
+
+_MULTIPART_SCHEMA = {
+    "type": "object",
+    "required": ["source", "target"],
+    "properties": {
+        "source": {"type": "string", "format": "binary", "description": "PLY, PCD or NPY file of the source."},
+        "target": {"type": "string", "format": "binary", "description": "PLY, PCD or NPY file of the target."},
+        "options": {
+            "type": "string",
+            "description": "Optional JSON object with the RegistrationOptions fields.",
+            "example": '{"refine": true, "seed": 0}',
+        },
+    },
+}
+_BINARY = {"type": "string", "format": "binary"}
+REGISTER_REQUEST_BODY = {
+    "required": True,
+    "content": {
+        "application/json": {
+            "schema": {"$ref": "#/components/schemas/RegisterRequest"},
+            "examples": {
+                "plain": {"summary": "Two clouds", "value": {"source": EXAMPLE_SOURCE, "target": EXAMPLE_TARGET}},
+                "refined": {
+                    "summary": "With an initial guess and ICP refinement",
+                    "value": {
+                        "source": EXAMPLE_SOURCE,
+                        "target": EXAMPLE_TARGET,
+                        "init": [[1, 0, 0, 0.1], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]],
+                        "refine": {"max_iterations": 50},
+                        "seed": 7,
+                    },
+                },
+            },
+        },
+        "multipart/form-data": {"schema": _MULTIPART_SCHEMA},
+        "application/x-npy": {"schema": {**_BINARY, "description": "One float array of shape [2, N, 3]."}},
+        "application/x-npz": {"schema": {**_BINARY, "description": "An NPZ archive with `source` and `target`."}},
+    },
+}
+
+_ERRORS = {
+    401: {"model": ErrorResponse, "description": "Missing or wrong API key (only when one is configured)."},
+    413: {"model": ErrorResponse, "description": "Body larger than the configured limit."},
+    415: {"model": ErrorResponse, "description": "Content type or file format not accepted."},
+    422: {"model": ErrorResponse, "description": "A field is invalid; `detail` names it and the problem."},
+    429: {"model": ErrorResponse, "description": "Queue full; retry after the `Retry-After` header's seconds."},
+    503: {"model": ErrorResponse, "description": "Model not loaded yet, or shutting down."},
+    504: {"model": ErrorResponse, "description": "No model result within the request timeout."},
+}
+
+
+def _matrix(array) -> list[list[float]]:
+    return [[float(value) for value in row] for row in array]
+
+
+def to_response(result: RegistrationResult, model: ModelDescription, started: float) -> RegisterResponse:
+    refinement = None
+    if result.refinement is not None:
+        refine = result.refinement
+        network_transform = to_matrix(refine.network_rotation, refine.network_translation)
+        refinement = Refinement(
+            max_distance=refine.max_distance, iterations=refine.iterations, network_transform=_matrix(network_transform)
+        )
+    prediction = result.prediction
+    return RegisterResponse(
+        rotation=_matrix(result.rotation),
+        translation=[float(value) for value in result.translation],
+        transform=_matrix(result.transform),
+        fitness=result.fitness,
+        inlier_rmse=result.inlier_rmse,
+        fitness_threshold=result.fitness_threshold,
+        points=CloudPointCounts(source=PointCounts(**vars(result.source)), target=PointCounts(**vars(result.target))),
+        refinement=refinement,
+        model=model,
+        timings_ms=Timings(
+            queue_ms=prediction.queue_ms,
+            inference_ms=prediction.inference_ms,
+            preprocess_ms=result.preprocess_ms,
+            postprocess_ms=result.postprocess_ms,
+            total_ms=(time.perf_counter() - started) * 1000.0,
+            batch_size=prediction.batch_size,
+        ),
+    )
+
+
+@router.post(
+    "/register",
+    response_model=RegisterResponse,
+    responses=_ERRORS,
+    openapi_extra={"requestBody": REGISTER_REQUEST_BODY},
+    dependencies=[Depends(require_api_key)],
+    summary="Register two point clouds",
+    tags=["registration"],
+)
+async def register(
+    request: Request,
+    service: LoadedService,
+    options: Annotated[
+        str | None,
+        Query(
+            description="RegistrationOptions as JSON, for raw NPY/NPZ bodies (multipart may use an `options` part).",
+            examples=['{"refine": true}'],
+        ),
+    ] = None,
+) -> RegisterResponse:
+    """The rigid transform (R, t) with `target ~ source @ R^T + t`, in the clouds' own units.
+
+    Send the clouds as JSON lists of [x, y, z], as multipart file parts `source` and `target`
+    (PLY, PCD or NPY each), or as one raw NPY [2, N, 3] / NPZ (`source`, `target`) body. Exact
+    duplicate points are removed (and counted in the answer), each cloud is resampled to the
+    network's point count, and both are normalised into the unit sphere before the network runs.
+    """
+    started = time.perf_counter()
+    source, target, parsed = await read_register_body(request, options, service.settings)
+    (result,) = await service.register(request, [(source, target)], parsed)
+    return to_response(result, service.model_description(), started)
+
+
+@router.get("/health", response_model=HealthResponse, summary="Liveness", tags=["operations"])
+async def health(service: Service) -> HealthResponse:
+    """Cheap liveness check that never touches the model, with recent /register latency percentiles."""
+    return HealthResponse(
+        ready=service.ready.is_set(),
+        uptime_s=time.monotonic() - service.started_at,
+        queue_depth=service.batcher.queue_depth if service.batcher is not None else 0,
+        in_flight=service.in_flight,
+        latency=LatencySummary(**service.latency.summary()),
+    )
+
+
+@router.get(
+    "/ready",
+    response_model=ReadyResponse,
+    responses={503: {"model": ReadyResponse, "description": "Model not loaded or not warmed up yet."}},
+    summary="Readiness",
+    tags=["operations"],
+)
+async def ready(service: Service) -> JSONResponse:
+    """200 once the model is loaded and warmed up at every batch size; 503 before (and while stopping)."""
+    if service.ready.is_set():
+        return JSONResponse(ReadyResponse(ready=True, detail="model loaded and warmed up").model_dump())
+    detail = service.warmup_error or (
+        "loading the model" if service.engine is None else "warming up the model" if service.accepting else "stopping"
+    )
+    return JSONResponse(ReadyResponse(ready=False, detail=detail).model_dump(), status_code=503)
+
+
+@router.get(
+    "/metrics",
+    response_class=Response,
+    responses={200: {"content": {"text/plain": {"example": 'ifnet_batch_size_bucket{le="1.0"} 12.0\n'}}}},
+    summary="Prometheus metrics",
+    tags=["operations"],
+)
+async def metrics(service: Service) -> Response:
+    """Request counts by status, latency, queue wait, batch size and inference time, in Prometheus text format."""
+    body, content_type = service.metrics.render()
+    return Response(body, media_type=content_type)

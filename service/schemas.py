@@ -1,0 +1,447 @@
+"""Request and response schemas of every route (pydantic), with the examples shown in the OpenAPI docs."""
+
+from typing import Annotated, Any, Literal
+
+import numpy as np
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Field,
+    PlainSerializer,
+    PlainValidator,
+    ValidationInfo,
+    WithJsonSchema,
+    field_validator,
+)
+from pydantic_core import PydanticCustomError
+
+from service.registration import InvalidInput, as_points, as_rigid_transform
+
+
+def _example_pair() -> tuple[list[list[float]], list[list[float]], list[list[float]]]:
+    """A small helix (48 points) and the same helix turned 30 degrees about z and shifted."""
+    angle = np.linspace(0.0, 4.0 * np.pi, 48)
+    source = np.stack([np.cos(angle), np.sin(angle), 0.1 * angle], axis=1)
+    turn = np.radians(30.0)
+    rotation = np.array([[np.cos(turn), -np.sin(turn), 0.0], [np.sin(turn), np.cos(turn), 0.0], [0.0, 0.0, 1.0]])
+    translation = np.array([0.2, -0.1, 0.05])
+    target = source @ rotation.T + translation
+    transform = np.eye(4)
+    transform[:3, :3], transform[:3, 3] = rotation, translation
+    return np.round(source, 4).tolist(), np.round(target, 4).tolist(), np.round(transform, 4).tolist()
+
+
+EXAMPLE_SOURCE, EXAMPLE_TARGET, EXAMPLE_TRANSFORM = _example_pair()
+IDENTITY = np.eye(4).tolist()
+
+
+def _validate_points(value: Any, info: ValidationInfo) -> np.ndarray:
+    try:
+        return as_points(value, info.field_name or "points")
+    except InvalidInput as error:
+        raise PydanticCustomError("points", error.problem) from None
+
+
+def _validate_init(value: Any, info: ValidationInfo) -> np.ndarray:
+    try:
+        return as_rigid_transform(value, info.field_name or "init")
+    except InvalidInput as error:
+        raise PydanticCustomError("rigid_transform", error.problem) from None
+
+
+def _matrix_schema(rows: int, columns: int) -> dict:
+    row = {"type": "array", "items": {"type": "number"}, "minItems": columns, "maxItems": columns}
+    return {"type": "array", "items": row, "minItems": rows, "maxItems": rows}
+
+
+_to_list = PlainSerializer(lambda array: np.asarray(array).tolist(), return_type=list)
+
+Points = Annotated[
+    np.ndarray,
+    PlainValidator(_validate_points),
+    _to_list,
+    WithJsonSchema(
+        {
+            "type": "array",
+            "items": {"type": "array", "items": {"type": "number"}, "minItems": 3, "maxItems": 3},
+            "description": "Points as [x, y, z] in your units; finite numbers only.",
+        }
+    ),
+]
+RigidMatrix = Annotated[np.ndarray, PlainValidator(_validate_init), _to_list, WithJsonSchema(_matrix_schema(4, 4))]
+Matrix3 = Annotated[list[list[float]], Field(min_length=3, max_length=3)]
+Matrix4 = Annotated[list[list[float]], Field(min_length=4, max_length=4)]
+
+
+# ---------------------------------------------------------------- /register
+
+
+class RefineOptions(BaseModel):
+    """ICP refinement on the full-resolution clouds after the network."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    max_distance: float | None = Field(
+        None,
+        gt=0,
+        description="Largest point-pair distance ICP uses, in your units. Default: 0.05 in the normalised frame "
+        "(5% of the radius of the larger resampled cloud), converted to your units.",
+    )
+    max_iterations: int = Field(30, ge=1, le=500, description="Most ICP iterations.")
+
+
+class RegistrationOptions(BaseModel):
+    """Everything about a registration except the clouds (also the `options` part of binary uploads)."""
+
+    model_config = ConfigDict(extra="forbid", arbitrary_types_allowed=True)
+
+    init: RigidMatrix | None = Field(
+        None, description="Initial guess (rigid 4x4, your units), applied to the source before the network."
+    )
+    refine: RefineOptions | None = Field(
+        None, description="Refine with ICP: `true` for the defaults, or an object with its parameters."
+    )
+    max_points: int | None = Field(
+        None,
+        ge=8,
+        description="Points per cloud given to the network (default: the model's native count). Larger clouds are "
+        "subsampled to it, smaller ones upsampled by repeating points.",
+    )
+    sampling: Literal["fps", "random"] = Field(
+        "fps", description="Subsampling: deterministic farthest-point (`fps`) or seeded random (`random`)."
+    )
+    seed: int = Field(0, ge=0, le=2**32 - 1, description="Seed of random sampling and upsampling.")
+    fitness_threshold: float | None = Field(
+        None, gt=0, description="Inlier distance for `fitness` and `inlier_rmse`, your units (default as ICP's)."
+    )
+
+    @field_validator("refine", mode="before")
+    @classmethod
+    def _refine_flag(cls, value: Any) -> Any:
+        """`true` means ICP with its defaults, `false` none; anything else must be the options object."""
+        if value is True:
+            return {}
+        if value is False:
+            return None
+        return value
+
+
+class RegisterRequest(RegistrationOptions):
+    """Two point clouds in the same units; the answer moves `source` onto `target`."""
+
+    source: Points = Field(description="The cloud to move, as a list of [x, y, z].")
+    target: Points = Field(description="The cloud to align to, as a list of [x, y, z].")
+
+    model_config = ConfigDict(
+        json_schema_extra={
+            "examples": [
+                {"source": EXAMPLE_SOURCE, "target": EXAMPLE_TARGET},
+                {
+                    "source": EXAMPLE_SOURCE,
+                    "target": EXAMPLE_TARGET,
+                    "init": IDENTITY,
+                    "refine": {"max_iterations": 50},
+                },
+            ]
+        }
+    )
+
+
+class PointCounts(BaseModel):
+    received: int = Field(description="Points in the request.")
+    duplicates_removed: int = Field(description="Exact duplicates dropped before resampling.")
+    network_points: int = Field(description="Points the network saw.")
+    upsampled: bool = Field(description="True when the distinct points were fewer and some were repeated.")
+
+
+class CloudPointCounts(BaseModel):
+    source: PointCounts
+    target: PointCounts
+
+
+class Refinement(BaseModel):
+    max_distance: float = Field(description="ICP's correspondence distance, your units.")
+    iterations: int
+    network_transform: Matrix4 = Field(description="The transform before refinement.")
+
+
+class ModelDescription(BaseModel):
+    model_config = ConfigDict(protected_namespaces=())
+
+    name: str
+    version: str = Field(description="First 12 hex digits of the weights' (or model file's) SHA-256.")
+    weights_sha256: str | None = None
+    file_sha256: str
+    preset: str | None = None
+    native_num_points: int
+
+
+class Timings(BaseModel):
+    queue_ms: float = Field(description="Wait in the batcher's queue.")
+    inference_ms: float = Field(description="The model call (shared by the whole batch).")
+    preprocess_ms: float
+    postprocess_ms: float = Field(description="Mapping back, refinement and scoring.")
+    total_ms: float
+    batch_size: int = Field(description="Pairs in the model call that served this one.")
+
+
+class RegisterResponse(BaseModel):
+    """The rigid transform with target ~ source @ rotation^T + translation, like Open3D's RegistrationResult."""
+
+    model_config = ConfigDict(
+        protected_namespaces=(),
+        json_schema_extra={
+            "examples": [
+                {
+                    "rotation": [row[:3] for row in EXAMPLE_TRANSFORM[:3]],
+                    "translation": [row[3] for row in EXAMPLE_TRANSFORM[:3]],
+                    "transform": EXAMPLE_TRANSFORM,
+                    "fitness": 1.0,
+                    "inlier_rmse": 0.0004,
+                    "fitness_threshold": 0.0736,
+                    "points": {
+                        "source": {"received": 48, "duplicates_removed": 0, "network_points": 768, "upsampled": True},
+                        "target": {"received": 48, "duplicates_removed": 0, "network_points": 768, "upsampled": True},
+                    },
+                    "refinement": None,
+                    "model": {
+                        "name": "ifnet",
+                        "version": "3f2a9c01d4e5",
+                        "weights_sha256": None,
+                        "file_sha256": "3f2a9c01d4e5" + "0" * 52,
+                        "preset": "fast",
+                        "native_num_points": 768,
+                    },
+                    "timings_ms": {
+                        "queue_ms": 0.2,
+                        "inference_ms": 87.0,
+                        "preprocess_ms": 9.5,
+                        "postprocess_ms": 1.1,
+                        "total_ms": 99.0,
+                        "batch_size": 1,
+                    },
+                }
+            ]
+        },
+    )
+
+    rotation: Matrix3
+    translation: list[float] = Field(min_length=3, max_length=3)
+    transform: Matrix4 = Field(description="[[rotation, translation], [0, 0, 0, 1]].")
+    fitness: float = Field(description="Share of moved source points with a target point within fitness_threshold.")
+    inlier_rmse: float = Field(description="RMS distance of those inlier pairs, your units.")
+    fitness_threshold: float
+    points: CloudPointCounts
+    refinement: Refinement | None
+    model: ModelDescription
+    timings_ms: Timings
+
+
+class FieldError(BaseModel):
+    field: str
+    problem: str
+
+
+class ErrorResponse(BaseModel):
+    detail: str = Field(description="What is wrong and, where it helps, what to do.")
+    errors: list[FieldError] = Field(default_factory=list)
+
+    model_config = ConfigDict(
+        json_schema_extra={
+            "examples": [
+                {
+                    "detail": "source: has 3 points; at least 32 distinct points are needed",
+                    "errors": [{"field": "source", "problem": "has 3 points; at least 32 distinct points are needed"}],
+                }
+            ]
+        }
+    )
+
+
+# ---------------------------------------------------------------- health and readiness
+
+
+class LatencySummary(BaseModel):
+    count: int = Field(description="Successful /register requests in the window.")
+    p50_ms: float | None
+    p95_ms: float | None
+    p99_ms: float | None
+
+
+class HealthResponse(BaseModel):
+    model_config = ConfigDict(
+        json_schema_extra={
+            "examples": [
+                {
+                    "status": "ok",
+                    "ready": True,
+                    "uptime_s": 3600.5,
+                    "queue_depth": 0,
+                    "in_flight": 1,
+                    "latency": {"count": 1000, "p50_ms": 95.1, "p95_ms": 180.4, "p99_ms": 260.0},
+                }
+            ]
+        }
+    )
+
+    status: Literal["ok"] = "ok"
+    ready: bool
+    uptime_s: float
+    queue_depth: int = Field(description="Pairs waiting for the model.")
+    in_flight: int = Field(description="Registration requests being processed.")
+    latency: LatencySummary
+
+
+class ReadyResponse(BaseModel):
+    model_config = ConfigDict(json_schema_extra={"examples": [{"ready": True, "detail": "model loaded and warmed up"}]})
+
+    ready: bool
+    detail: str
+
+
+# ---------------------------------------------------------------- Open Inference Protocol v2
+
+
+class V2Tensor(BaseModel):
+    name: str
+    shape: list[int]
+    datatype: str
+    data: list[Any] = Field(description="Row-major values, flat or nested.")
+    parameters: dict[str, Any] | None = None
+
+
+class V2RequestedOutput(BaseModel):
+    name: str
+    parameters: dict[str, Any] | None = None
+
+
+class V2InferRequest(BaseModel):
+    """`source` [B, N, 3] and `target` [B, M, 3] FP32 (or [N, 3] for one pair), in your units."""
+
+    id: str | None = None
+    parameters: dict[str, Any] | None = Field(
+        None, description="Optional `max_points`, `sampling` and `seed`, as in /register."
+    )
+    inputs: list[V2Tensor]
+    outputs: list[V2RequestedOutput] | None = None
+
+    model_config = ConfigDict(
+        json_schema_extra={
+            "examples": [
+                {
+                    "id": "pair-1",
+                    "inputs": [
+                        {
+                            "name": "source",
+                            "shape": [1, len(EXAMPLE_SOURCE), 3],
+                            "datatype": "FP32",
+                            "data": [value for point in EXAMPLE_SOURCE for value in point],
+                        },
+                        {
+                            "name": "target",
+                            "shape": [1, len(EXAMPLE_TARGET), 3],
+                            "datatype": "FP32",
+                            "data": [value for point in EXAMPLE_TARGET for value in point],
+                        },
+                    ],
+                }
+            ]
+        }
+    )
+
+
+class V2InferResponse(BaseModel):
+    model_config = ConfigDict(
+        protected_namespaces=(),
+        json_schema_extra={
+            "examples": [
+                {
+                    "model_name": "ifnet",
+                    "model_version": "3f2a9c01d4e5",
+                    "id": "pair-1",
+                    "outputs": [
+                        {
+                            "name": "rotation",
+                            "shape": [1, 3, 3],
+                            "datatype": "FP32",
+                            "data": [v for row in EXAMPLE_TRANSFORM[:3] for v in row[:3]],
+                        },
+                        {
+                            "name": "translation",
+                            "shape": [1, 3],
+                            "datatype": "FP32",
+                            "data": [row[3] for row in EXAMPLE_TRANSFORM[:3]],
+                        },
+                    ],
+                }
+            ]
+        },
+    )
+
+    model_name: str
+    model_version: str
+    id: str | None = None
+    outputs: list[V2Tensor]
+
+
+class V2TensorMetadata(BaseModel):
+    name: str
+    datatype: str
+    shape: list[int]
+
+
+class V2ModelMetadata(BaseModel):
+    model_config = ConfigDict(
+        json_schema_extra={
+            "examples": [
+                {
+                    "name": "ifnet",
+                    "versions": ["3f2a9c01d4e5"],
+                    "platform": "onnxruntime_onnx",
+                    "inputs": [
+                        {"name": "source", "datatype": "FP32", "shape": [-1, -1, 3]},
+                        {"name": "target", "datatype": "FP32", "shape": [-1, -1, 3]},
+                    ],
+                    "outputs": [
+                        {"name": "rotation", "datatype": "FP32", "shape": [-1, 3, 3]},
+                        {"name": "translation", "datatype": "FP32", "shape": [-1, 3]},
+                    ],
+                }
+            ]
+        }
+    )
+
+    name: str
+    versions: list[str]
+    platform: str
+    inputs: list[V2TensorMetadata]
+    outputs: list[V2TensorMetadata]
+    parameters: dict[str, Any] = Field(default_factory=dict)
+
+
+class V2ServerMetadata(BaseModel):
+    model_config = ConfigDict(
+        json_schema_extra={"examples": [{"name": "ifnet-serve", "version": "0.1.0", "extensions": []}]}
+    )
+
+    name: str
+    version: str
+    extensions: list[str]
+
+
+class V2Live(BaseModel):
+    model_config = ConfigDict(json_schema_extra={"examples": [{"live": True}]})
+
+    live: bool
+
+
+class V2Ready(BaseModel):
+    model_config = ConfigDict(json_schema_extra={"examples": [{"ready": True}]})
+
+    ready: bool
+
+
+class V2Error(BaseModel):
+    model_config = ConfigDict(json_schema_extra={"examples": [{"error": "source: shape [1, 10, 2] is not [B, N, 3]"}]})
+
+    error: str

@@ -1,0 +1,53 @@
+"""Every setting of the service, read from `IFNET_*` environment variables (or passed explicitly)."""
+
+from pathlib import Path
+from typing import Literal
+
+from pydantic import Field, SecretStr, field_validator
+from pydantic_settings import BaseSettings, SettingsConfigDict
+
+DEFAULT_MODEL_PATH = Path(__file__).resolve().parent / "models" / "ifnet.onnx"
+
+
+class Settings(BaseSettings):
+    """Service configuration. Each field `name` is also read from the variable `IFNET_NAME`."""
+
+    model_config = SettingsConfigDict(env_prefix="IFNET_", extra="ignore", protected_namespaces=())
+
+    host: str = Field("127.0.0.1", description="Interface to listen on.")
+    port: int = Field(8000, ge=0, le=65535, description="TCP port to listen on.")
+    model_path: Path = Field(DEFAULT_MODEL_PATH, description="ONNX model file (IFNet export).")
+    threads: int | None = Field(
+        None, ge=1, description="ONNX Runtime intra-op threads; default: the CPUs this process may use."
+    )
+    max_batch_size: int = Field(4, ge=1, le=64, description="Most requests run in one model call.")
+    max_batch_delay_ms: float = Field(
+        0.0, ge=0.0, le=1000.0, description="How long a batch waits to fill up; 0 takes whatever is waiting."
+    )
+    max_queue_size: int = Field(64, ge=1, description="Requests that may wait for the model; more get 429.")
+    request_timeout_s: float = Field(
+        30.0, gt=0.0, description="Longest wait for the model (queue and inference); longer gets 504."
+    )
+    max_body_bytes: int = Field(64 * 1024 * 1024, ge=1024, description="Largest request body; larger gets 413.")
+    min_points: int = Field(32, ge=8, description="Fewest distinct points a cloud must have.")
+    max_cloud_points: int = Field(500_000, ge=1, description="Most points one cloud may have.")
+    max_network_points: int = Field(2048, ge=8, description="Largest per-request `max_points` (network input).")
+    fps_max_input_points: int = Field(
+        32_768,
+        ge=1024,
+        description="Farthest-point sampling of larger clouds starts from a seeded random subset of this size.",
+    )
+    warmup: bool = Field(True, description="Run the model once per batch size before reporting ready.")
+    shutdown_timeout_s: float = Field(30.0, gt=0.0, description="Grace period for in-flight requests on SIGTERM.")
+    log_level: Literal["critical", "error", "warning", "info", "debug"] = "info"
+    api_key: SecretStr | None = Field(
+        None, description="If set, /register and v2 inference need it in `X-API-Key` or `Authorization: Bearer`."
+    )
+    latency_window: int = Field(1000, ge=10, description="Recent /register requests the /health percentiles cover.")
+
+    @field_validator("api_key", mode="before")
+    @classmethod
+    def _blank_key_means_none(cls, value: object) -> object:
+        """An empty IFNET_API_KEY (e.g. an unset optional secret) disables the check rather than
+        requiring an empty key."""
+        return None if isinstance(value, str) and not value.strip() else value

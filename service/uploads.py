@@ -1,0 +1,91 @@
+"""The /register body in any accepted encoding: JSON, multipart file parts, or a raw NPY/NPZ body."""
+
+import asyncio
+
+import numpy as np
+from fastapi import HTTPException
+from starlette.datastructures import UploadFile
+from starlette.requests import Request
+
+from service.formats import UnsupportedFormat, read_cloud, read_pair
+from service.registration import InvalidInput
+from service.schemas import RegisterRequest, RegistrationOptions
+from service.settings import Settings
+
+JSON_TYPES = ("application/json",)
+MULTIPART_TYPES = ("multipart/form-data",)
+RAW_TYPES = ("application/x-npy", "application/x-npz", "application/zip", "application/octet-stream")
+ACCEPTED = (
+    "application/json, multipart/form-data (file parts `source` and `target`), application/x-npy or application/x-npz"
+)
+
+
+class UnsupportedMediaType(HTTPException):
+    def __init__(self, detail: str):
+        super().__init__(415, detail)
+
+
+def media_type(request: Request) -> str:
+    return request.headers.get("content-type", "").split(";")[0].strip().lower()
+
+
+async def read_register_body(
+    request: Request, query_options: str | None, settings: Settings
+) -> tuple[np.ndarray, np.ndarray, RegistrationOptions]:
+    """Source, target and options of a /register request, whatever its content type.
+
+    Raises UnsupportedMediaType (415), InvalidInput or pydantic's ValidationError (422).
+    """
+    media = media_type(request)
+    if media in JSON_TYPES or media.endswith("+json"):
+        if query_options is not None:
+            raise InvalidInput("options", "with a JSON body, put the options in the body, not in the query string")
+        payload = RegisterRequest.model_validate_json(await request.body())
+        return payload.source, payload.target, payload
+    if media in MULTIPART_TYPES:
+        return await _read_multipart(request, query_options, settings)
+    if media in RAW_TYPES:
+        body = await request.body()
+        try:
+            source, target = await asyncio.to_thread(read_pair, body, settings.max_cloud_points)
+        except UnsupportedFormat as error:
+            raise UnsupportedMediaType(str(error)) from None
+        return source, target, _options(query_options)
+    shown = media or "none"
+    raise UnsupportedMediaType(f"content type {shown!r} is not accepted; send {ACCEPTED}")
+
+
+async def _read_multipart(
+    request: Request, query_options: str | None, settings: Settings
+) -> tuple[np.ndarray, np.ndarray, RegistrationOptions]:
+    async with request.form(max_files=2, max_fields=2) as form:
+        unexpected = sorted(set(form.keys()) - {"source", "target", "options"})
+        if unexpected:
+            raise InvalidInput(
+                unexpected[0],
+                "unexpected form part; send file parts `source` and `target` and an optional `options` field (JSON)",
+            )
+        clouds = []
+        for name in ("source", "target"):
+            part = form.get(name)
+            if not isinstance(part, UploadFile):
+                raise InvalidInput(
+                    name, f"missing file part: upload the cloud as a PLY, PCD or NPY file named `{name}`"
+                )
+            data = await part.read()
+            try:
+                clouds.append(await asyncio.to_thread(read_cloud, data, name, settings.max_cloud_points))
+            except UnsupportedFormat as error:
+                raise UnsupportedMediaType(str(error)) from None
+        options_field = form.get("options")
+        if isinstance(options_field, UploadFile):
+            options_field = (await options_field.read()).decode("utf-8", errors="replace")
+    if options_field is not None and query_options is not None:
+        raise InvalidInput("options", "given both as a form field and in the query string; send it once")
+    return clouds[0], clouds[1], _options(options_field if options_field is not None else query_options)
+
+
+def _options(text: str | None) -> RegistrationOptions:
+    if text is None or not text.strip():
+        return RegistrationOptions()
+    return RegistrationOptions.model_validate_json(text)

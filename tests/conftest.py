@@ -1,0 +1,158 @@
+"""Shared test fixtures: the real scans, the shipped model, and a tiny ONNX model for the service."""
+
+import asyncio
+import threading
+from contextlib import asynccontextmanager
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+REPO = Path(__file__).resolve().parents[1]
+SHARED_DATA = REPO.parent / "shared" / "data"
+REAL_SCANS = SHARED_DATA / "real_scans.npz"
+SHIPPED_MODEL = REPO / "service" / "models" / "ifnet.onnx"
+TINY_MODEL_POINTS = 64
+
+
+@pytest.fixture
+def anyio_backend() -> str:
+    return "asyncio"
+
+
+@pytest.fixture(scope="session")
+def real_scans() -> dict[str, np.ndarray]:
+    """The real sensor scans of ../shared/data (float64), skipping where the data is absent."""
+    if not REAL_SCANS.is_file():
+        pytest.skip(f"real scans not found at {REAL_SCANS} (shared data is not checked out here)")
+    with np.load(REAL_SCANS, allow_pickle=False) as archive:
+        return {name: archive[name].astype(np.float64) for name in archive.files}
+
+
+@pytest.fixture(scope="session")
+def shipped_model() -> Path:
+    if not SHIPPED_MODEL.is_file():
+        pytest.skip(f"no model at {SHIPPED_MODEL}")
+    return SHIPPED_MODEL
+
+
+def build_tiny_model(path: Path, with_metadata: bool = True) -> Path:
+    """An ONNX model with IFNet's inputs and outputs that runs in microseconds.
+
+    rotation = identity (for every pair), translation = per-axis max of target minus that of
+    source: each pair's answer depends on its own clouds only, so a batch that mixed pairs up
+    would give wrong answers.
+    """
+    onnx = pytest.importorskip("onnx")
+    from onnx import TensorProto, helper
+
+    graph = helper.make_graph(
+        [
+            helper.make_node("ReduceMax", ["target"], ["target_max"], axes=[1], keepdims=0),
+            helper.make_node("ReduceMax", ["source"], ["source_max"], axes=[1], keepdims=0),
+            helper.make_node("Sub", ["target_max", "source_max"], ["translation"]),
+            helper.make_node("ReduceSum", ["source", "all_axes"], ["source_sum"], keepdims=1),
+            helper.make_node("Mul", ["source_sum", "zero"], ["zeros"]),
+            helper.make_node("Add", ["eye", "zeros"], ["rotation"]),
+        ],
+        "tiny_registration",
+        [
+            helper.make_tensor_value_info("source", TensorProto.FLOAT, ["batch", "n_source", 3]),
+            helper.make_tensor_value_info("target", TensorProto.FLOAT, ["batch", "n_target", 3]),
+        ],
+        [
+            helper.make_tensor_value_info("rotation", TensorProto.FLOAT, ["batch", 3, 3]),
+            helper.make_tensor_value_info("translation", TensorProto.FLOAT, ["batch", 3]),
+        ],
+        initializer=[
+            helper.make_tensor("eye", TensorProto.FLOAT, [1, 3, 3], np.eye(3, dtype=np.float32).ravel()),
+            helper.make_tensor("zero", TensorProto.FLOAT, [], [0.0]),
+            helper.make_tensor("all_axes", TensorProto.INT64, [2], [1, 2]),
+        ],
+    )
+    model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 17)])
+    model.ir_version = 8
+    if with_metadata:
+        helper.set_model_props(
+            model,
+            {
+                "model_name": "ifnet",
+                "preset": "tiny-test",
+                "num_points": str(TINY_MODEL_POINTS),
+                "weights_sha256": "0" * 64,
+                "opset": "17",
+                "export_date": "2025-01-01",
+                "config": '{"num_points": 64}',
+            },
+        )
+    onnx.checker.check_model(model)
+    onnx.save(model, str(path))
+    return path
+
+
+@pytest.fixture
+def tiny_model_builder():
+    """build_tiny_model(path, with_metadata=True), for tests that need a variant."""
+    return build_tiny_model
+
+
+@pytest.fixture(scope="session")
+def tiny_model(tmp_path_factory) -> Path:
+    return build_tiny_model(tmp_path_factory.mktemp("models") / "tiny.onnx")
+
+
+class GatedEngine:
+    """Wraps an engine; while `gate` is clear, model calls wait for it (warm-up included).
+
+    `calls` records the batch size of every call that went through; `entered` is set once a
+    call has reached the gate, and `at_gate` is the batch size of the call waiting there.
+    """
+
+    def __init__(self, engine, gated: bool = True):
+        self.engine = engine
+        self.info = engine.info
+        self.gate = threading.Event()
+        self.entered = threading.Event()
+        self.calls: list[int] = []
+        self.at_gate = 0
+        if not gated:
+            self.gate.set()
+
+    def run(self, source: np.ndarray, target: np.ndarray):
+        self.at_gate = len(source)
+        self.entered.set()
+        if not self.gate.wait(timeout=60):
+            raise TimeoutError("the test never opened the gate")
+        self.at_gate = 0
+        self.calls.append(len(source))
+        return self.engine.run(source, target)
+
+
+@pytest.fixture
+def gated_engine():
+    """GatedEngine(engine, gated=True): see the class."""
+    return GatedEngine
+
+
+@pytest.fixture
+def serve():
+    """serve(settings, engine=None, wait_ready=True): async context manager yielding (app, client).
+
+    Runs the app's lifespan (model loading, warm-up, shutdown drain) around an httpx client
+    that talks to it in-process.
+    """
+    import httpx
+
+    from service.app import create_app
+
+    @asynccontextmanager
+    async def running(settings, engine=None, wait_ready: bool = True):
+        app = create_app(settings, engine=engine)
+        async with app.router.lifespan_context(app):
+            transport = httpx.ASGITransport(app=app)
+            async with httpx.AsyncClient(transport=transport, base_url="http://testserver", timeout=60) as client:
+                if wait_ready:
+                    await asyncio.wait_for(app.state.service.ready.wait(), timeout=60)
+                yield app, client
+
+    return running

@@ -1,0 +1,314 @@
+"""The micro-batcher: batching under load, one-at-a-time equivalence, backpressure (429), timeouts
+(504), disconnects, failures and shutdown.
+
+Engines are wrapped in a gate (see conftest.GatedEngine) so that tests decide when a model call
+may proceed: queue states are then reached deterministically, without sleeping or timing.
+"""
+
+import asyncio
+import json
+
+import numpy as np
+import pytest
+from prometheus_client.parser import text_string_to_metric_families
+
+from service.batcher import InferenceError, MicroBatcher, QueueFullError, ShuttingDownError
+from service.engine import OnnxEngine
+from service.registration import RegistrationParams, register_clouds
+from service.settings import Settings
+
+pytestmark = pytest.mark.anyio
+
+
+def settings_for(model, **overrides) -> Settings:
+    return Settings(**{"model_path": model, "warmup": False, "max_batch_size": 8, **overrides})
+
+
+def pair(seed: int) -> tuple[np.ndarray, np.ndarray]:
+    rng = np.random.default_rng(seed)
+    source = rng.normal(size=(80, 3)) * rng.uniform(0.5, 3.0)
+    angle = rng.uniform(0, np.pi)
+    rotation = np.array([[np.cos(angle), -np.sin(angle), 0], [np.sin(angle), np.cos(angle), 0], [0, 0, 1]])
+    return source, source[rng.permutation(80)[:70]] @ rotation.T + rng.normal(size=3)
+
+
+def payload(seed: int) -> dict:
+    source, target = pair(seed)
+    return {"source": source.tolist(), "target": target.tolist()}
+
+
+async def wait_until(condition, what: str) -> None:
+    """Yield to the event loop until condition() holds (a hang guard, not a timing assertion)."""
+    for _ in range(6_000):
+        if condition():
+            return
+        await asyncio.sleep(0.005)
+    raise AssertionError(f"never reached: {what}")
+
+
+def metric_samples(text: str) -> dict[str, float]:
+    samples = {}
+    for family in text_string_to_metric_families(text):
+        for sample in family.samples:
+            labels = ",".join(f"{key}={value}" for key, value in sorted(sample.labels.items()))
+            samples[f"{sample.name}{{{labels}}}"] = sample.value
+    return samples
+
+
+async def test_32_concurrent_requests_are_batched_and_each_gets_its_own_answer(serve, tiny_model, gated_engine):
+    engine = gated_engine(OnnxEngine(tiny_model))
+    async with serve(settings_for(tiny_model, max_queue_size=64), engine=engine) as (app, client):
+        batcher = app.state.service.batcher
+        requests = [asyncio.ensure_future(client.post("/register", json=payload(seed))) for seed in range(32)]
+        # The first batch holds the worker at the gate; all other pairs queue up behind it.
+        await wait_until(lambda: engine.at_gate + batcher.queue_depth == 32, "every pair at the gate or queued")
+        engine.gate.set()
+        responses = await asyncio.gather(*requests)
+        metrics = metric_samples((await client.get("/metrics")).text)
+
+    # One-at-a-time reference: the same pipeline, each pair alone in its own model call.
+    async def alone(source, target):
+        rotation, translation = engine.engine.run(source[None], target[None])
+        from service.registration import Prediction
+
+        return Prediction(rotation[0].astype(np.float64), translation[0].astype(np.float64))
+
+    for seed, response in enumerate(responses):
+        assert response.status_code == 200, response.text
+        reference = await register_clouds(*pair(seed), RegistrationParams(num_points=64), alone)
+        np.testing.assert_allclose(response.json()["transform"], reference.transform, rtol=1e-12, atol=1e-12)
+    assert sum(engine.calls) == 32 and max(engine.calls) == 8
+    assert metrics["ifnet_batch_size_count{}"] == len(engine.calls)
+    assert metrics["ifnet_batch_size_bucket{le=1.0}"] < metrics["ifnet_batch_size_count{}"]  # batches of > 1
+    assert metrics["ifnet_batch_size_sum{}"] == 32
+    assert sorted(response.json()["timings_ms"]["batch_size"] for response in responses)[-8:] == [8] * 8
+
+
+async def test_batched_results_equal_one_at_a_time_on_the_shipped_model(shipped_model, gated_engine):
+    """The real network: pairs run in one batch give the same transforms as pairs run alone."""
+    engine = gated_engine(OnnxEngine(shipped_model))
+    batcher = MicroBatcher(engine, max_batch_size=4, max_queue_size=8)
+    batcher.start()
+    rng = np.random.default_rng(0)
+    clouds = [
+        (rng.normal(size=(64, 3)).astype(np.float32), rng.normal(size=(64, 3)).astype(np.float32)) for _ in range(4)
+    ]
+    blocker = asyncio.ensure_future(batcher.submit(*clouds[0]))
+    await wait_until(lambda: engine.entered.is_set(), "first call at the gate")
+    batched = [asyncio.ensure_future(batcher.submit(*cloud)) for cloud in clouds[1:]]
+    await wait_until(lambda: batcher.queue_depth == 3, "three pairs queued")
+    engine.gate.set()
+    results = await asyncio.gather(blocker, *batched)
+    await batcher.close(grace_s=10)
+    assert engine.calls == [1, 3]
+    for (source, target), result in zip(clouds, results, strict=True):
+        rotation, translation = engine.engine.run(source[None], target[None])
+        np.testing.assert_allclose(result.rotation, rotation[0], atol=1e-4)
+        np.testing.assert_allclose(result.translation, translation[0], atol=1e-4)
+
+
+async def test_pairs_of_different_sizes_run_in_separate_calls(tiny_model, gated_engine):
+    engine = gated_engine(OnnxEngine(tiny_model))
+    batcher = MicroBatcher(engine, max_batch_size=8, max_queue_size=8)
+    batcher.start()
+    rng = np.random.default_rng(1)
+    first = asyncio.ensure_future(batcher.submit(rng.normal(size=(10, 3)), rng.normal(size=(10, 3))))
+    await wait_until(lambda: engine.entered.is_set(), "first call at the gate")
+    shapes = [(16, 16), (16, 16), (32, 16), (16, 16)]
+    rest = [asyncio.ensure_future(batcher.submit(rng.normal(size=(n, 3)), rng.normal(size=(m, 3)))) for n, m in shapes]
+    await wait_until(lambda: batcher.queue_depth == 4, "four pairs queued")
+    engine.gate.set()
+    results = await asyncio.gather(first, *rest)
+    await batcher.close(grace_s=10)
+    assert engine.calls == [1, 3, 1]
+    assert [result.batch_size for result in results] == [1, 3, 3, 1, 3]
+
+
+async def test_a_full_queue_answers_429_with_retry_after(serve, tiny_model, gated_engine):
+    engine = gated_engine(OnnxEngine(tiny_model))
+    async with serve(settings_for(tiny_model, max_queue_size=2), engine=engine) as (app, client):
+        batcher = app.state.service.batcher
+        running = asyncio.ensure_future(client.post("/register", json=payload(0)))
+        await wait_until(lambda: engine.entered.is_set(), "first call at the gate")
+        queued = [asyncio.ensure_future(client.post("/register", json=payload(seed))) for seed in (1, 2)]
+        await wait_until(lambda: batcher.queue_depth == 2, "queue full")
+        rejected = await client.post("/register", json=payload(3))
+        health = (await client.get("/health")).json()
+        engine.gate.set()
+        accepted = await asyncio.gather(running, *queued)
+        metrics = metric_samples((await client.get("/metrics")).text)
+    assert rejected.status_code == 429
+    assert int(rejected.headers["retry-after"]) >= 1
+    assert "queue is full" in rejected.json()["detail"]
+    assert health["queue_depth"] == 2 and health["in_flight"] == 3
+    assert [response.status_code for response in accepted] == [200, 200, 200]
+    assert metrics["ifnet_batcher_rejections_total{reason=queue_full}"] == 1
+    assert metrics["ifnet_http_requests_total{method=POST,route=/register,status=429}"] == 1
+
+
+async def test_a_request_that_waits_too_long_gets_504_and_leaves_the_batch(serve, tiny_model, gated_engine):
+    engine = gated_engine(OnnxEngine(tiny_model))
+    async with serve(settings_for(tiny_model, request_timeout_s=1.0), engine=engine) as (app, client):
+        batcher = app.state.service.batcher
+        running = asyncio.ensure_future(client.post("/register", json=payload(0)))
+        await wait_until(lambda: engine.entered.is_set(), "first call at the gate")
+        waiting = await client.post("/register", json=payload(1))  # queued behind the gate, times out
+        assert batcher.queue_depth == 0  # the timed-out pair no longer counts as queued
+        engine.gate.set()
+        timed_out_first = await running  # it was at the gate just as long: 504 too, its result dropped
+        after = await client.post("/register", json=payload(2))
+    assert waiting.status_code == 504 and "within 1 s" in waiting.json()["detail"]
+    assert timed_out_first.status_code == 504
+    assert after.status_code == 200
+    # The timed-out pair never reached the model: the call after the gate ran pair 2 alone.
+    assert engine.calls == [1, 1]
+
+
+async def test_a_client_that_disconnects_does_not_poison_the_batch(serve, tiny_model, gated_engine):
+    engine = gated_engine(OnnxEngine(tiny_model))
+    async with serve(settings_for(tiny_model), engine=engine) as (app, client):
+        batcher = app.state.service.batcher
+        running = asyncio.ensure_future(client.post("/register", json=payload(0)))
+        await wait_until(lambda: engine.entered.is_set(), "first call at the gate")
+
+        # A raw ASGI request whose client goes away while its pair waits in the queue.
+        body = json.dumps(payload(1)).encode()
+        messages = [{"type": "http.request", "body": body, "more_body": False}]
+        gone = asyncio.Event()
+        sent = []
+
+        async def receive():
+            if messages:
+                return messages.pop(0)
+            await gone.wait()
+            return {"type": "http.disconnect"}
+
+        async def send(message):
+            sent.append(message)
+
+        scope = {
+            "type": "http",
+            "asgi": {"version": "3.0"},
+            "http_version": "1.1",
+            "method": "POST",
+            "scheme": "http",
+            "path": "/register",
+            "raw_path": b"/register",
+            "query_string": b"",
+            "root_path": "",
+            "headers": [(b"content-type", b"application/json"), (b"content-length", str(len(body)).encode())],
+            "client": ("127.0.0.1", 50000),
+            "server": ("testserver", 80),
+        }
+        leaving = asyncio.ensure_future(app(scope, receive, send))
+        queued_behind = asyncio.ensure_future(client.post("/register", json=payload(2)))
+        await wait_until(lambda: batcher.queue_depth == 2, "two pairs queued")
+        gone.set()
+        await leaving
+        assert batcher.queue_depth == 1
+        engine.gate.set()
+        responses = await asyncio.gather(running, queued_behind)
+        metrics = metric_samples((await client.get("/metrics")).text)
+    assert sent[0]["status"] == 499
+    assert [response.status_code for response in responses] == [200, 200]
+    assert engine.calls == [1, 1]  # the departed pair was skipped
+    assert metrics["ifnet_http_requests_total{method=POST,route=/register,status=499}"] == 1
+
+
+async def test_a_failing_model_call_is_a_500_and_the_worker_carries_on(serve, tiny_model):
+    class FlakyEngine:
+        def __init__(self):
+            self.engine = OnnxEngine(tiny_model)
+            self.info = self.engine.info
+            self.failures = 1
+
+        def run(self, source, target):
+            if self.failures:
+                self.failures -= 1
+                raise RuntimeError("simulated ORT failure")
+            return self.engine.run(source, target)
+
+    async with serve(settings_for(tiny_model), engine=FlakyEngine()) as (app, client):
+        failed = await client.post("/register", json=payload(0))
+        recovered = await client.post("/register", json=payload(0))
+    assert failed.status_code == 500 and "simulated ORT failure" in failed.json()["detail"]
+    assert recovered.status_code == 200
+
+
+async def test_shutdown_finishes_queued_work_then_refuses_new_work(tiny_model, gated_engine):
+    engine = gated_engine(OnnxEngine(tiny_model))
+    batcher = MicroBatcher(engine, max_batch_size=2, max_queue_size=8)
+    batcher.start()
+    rng = np.random.default_rng(2)
+    submitted = [
+        asyncio.ensure_future(batcher.submit(rng.normal(size=(20, 3)), rng.normal(size=(20, 3)))) for _ in range(5)
+    ]
+    await wait_until(lambda: engine.at_gate + batcher.queue_depth == 5, "every pair at the gate or queued")
+    closing = asyncio.ensure_future(batcher.close(grace_s=30))
+    await wait_until(lambda: not batcher.accepting, "closing started")
+    with pytest.raises(ShuttingDownError):
+        await batcher.submit(rng.normal(size=(20, 3)), rng.normal(size=(20, 3)))
+    engine.gate.set()
+    results = await asyncio.gather(*submitted)
+    await closing
+    assert len(results) == 5 and sum(engine.calls) == 5 and max(engine.calls) == 2
+
+
+async def test_shutdown_grace_period_fails_leftover_work_cleanly(tiny_model, gated_engine):
+    engine = gated_engine(OnnxEngine(tiny_model))  # the gate never opens
+    batcher = MicroBatcher(engine, max_batch_size=1, max_queue_size=8)
+    batcher.start()
+    rng = np.random.default_rng(3)
+    submitted = [
+        asyncio.ensure_future(batcher.submit(rng.normal(size=(20, 3)), rng.normal(size=(20, 3)))) for _ in range(2)
+    ]
+    await wait_until(lambda: engine.at_gate == 1 and batcher.queue_depth == 1, "one running, one queued")
+    await batcher.close(grace_s=0.05)
+    outcomes = await asyncio.gather(*submitted, return_exceptions=True)
+    engine.gate.set()  # release the abandoned ORT thread
+    assert all(isinstance(outcome, ShuttingDownError) for outcome in outcomes)
+
+
+async def test_queue_full_and_inference_errors_are_typed(tiny_model):
+    class Broken:
+        info = OnnxEngine(tiny_model).info
+
+        def run(self, source, target):
+            return np.zeros((1, 2, 2)), np.zeros((1, 3))  # wrong shapes
+
+    batcher = MicroBatcher(Broken(), max_batch_size=1, max_queue_size=1)
+    rng = np.random.default_rng(4)
+    first = asyncio.ensure_future(batcher.submit(rng.normal(size=(8, 3)), rng.normal(size=(8, 3))))
+    await asyncio.sleep(0)
+    with pytest.raises(QueueFullError) as caught:
+        await batcher.submit(rng.normal(size=(8, 3)), rng.normal(size=(8, 3)))
+    assert caught.value.retry_after_s >= 1
+    batcher.start()
+    with pytest.raises(InferenceError, match="rotation"):
+        await first
+    await batcher.close(grace_s=1)
+
+
+async def test_a_batch_delay_lets_a_batch_fill_up(tiny_model):
+    """With max_batch_delay_ms, the worker waits for more pairs after the first (until the batch is full)."""
+    engine = OnnxEngine(tiny_model)
+    calls = []
+
+    class Recording:
+        info = engine.info
+
+        def run(self, source, target):
+            calls.append(len(source))
+            return engine.run(source, target)
+
+    batcher = MicroBatcher(Recording(), max_batch_size=3, max_queue_size=8, max_batch_delay_ms=60_000)
+    batcher.start()
+    rng = np.random.default_rng(5)
+    first = asyncio.ensure_future(batcher.submit(rng.normal(size=(16, 3)), rng.normal(size=(16, 3))))
+    await wait_until(lambda: batcher.queue_depth == 0, "first pair taken by the waiting worker")
+    later = [
+        asyncio.ensure_future(batcher.submit(rng.normal(size=(16, 3)), rng.normal(size=(16, 3)))) for _ in range(2)
+    ]
+    results = await asyncio.gather(first, *later)  # a full batch does not wait out the minute
+    await batcher.close(grace_s=5)
+    assert calls == [3] and [result.batch_size for result in results] == [3, 3, 3]

@@ -1,0 +1,154 @@
+"""The ONNX Runtime engine: CPU count from affinity and cgroups, model loading and its failures,
+metadata, and the rule that nothing in the service imports torch."""
+
+import logging
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from service.engine import ModelLoadError, OnnxEngine, available_cpus, cgroup_cpu_limit
+from service.settings import Settings
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def write(path: Path, text: str) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(text)
+
+
+def test_cgroup_v2_quota(tmp_path):
+    write(tmp_path / "proc_cgroup", "0::/\n")
+    write(tmp_path / "cg" / "cpu.max", "150000 100000\n")
+    assert cgroup_cpu_limit(tmp_path / "cg", tmp_path / "proc_cgroup") == 1.5
+    write(tmp_path / "cg" / "cpu.max", "max 100000\n")
+    assert cgroup_cpu_limit(tmp_path / "cg", tmp_path / "proc_cgroup") is None
+
+
+def test_cgroup_v2_nested_path_takes_the_tightest_quota(tmp_path):
+    write(tmp_path / "proc_cgroup", "0::/kubepods/pod1/container\n")
+    write(tmp_path / "cg" / "kubepods" / "cpu.max", "400000 100000\n")
+    write(tmp_path / "cg" / "kubepods" / "pod1" / "container" / "cpu.max", "200000 100000\n")
+    assert cgroup_cpu_limit(tmp_path / "cg", tmp_path / "proc_cgroup") == 2.0
+
+
+def test_cgroup_v1_quota(tmp_path):
+    write(tmp_path / "proc_cgroup", "4:memory:/x\n3:cpu,cpuacct:/\n")
+    write(tmp_path / "cg" / "cpu,cpuacct" / "cpu.cfs_quota_us", "300000\n")
+    write(tmp_path / "cg" / "cpu,cpuacct" / "cpu.cfs_period_us", "100000\n")
+    assert cgroup_cpu_limit(tmp_path / "cg", tmp_path / "proc_cgroup") == 3.0
+    write(tmp_path / "cg" / "cpu,cpuacct" / "cpu.cfs_quota_us", "-1\n")
+    assert cgroup_cpu_limit(tmp_path / "cg", tmp_path / "proc_cgroup") is None
+
+
+def test_no_cgroup_information(tmp_path):
+    assert cgroup_cpu_limit(tmp_path / "cg", tmp_path / "missing") is None
+
+
+def test_available_cpus_respects_the_affinity_mask():
+    assert 1 <= available_cpus() <= len(os.sched_getaffinity(0))
+
+
+def test_engine_threads_follow_the_usable_cpus_unless_set(tiny_model):
+    assert OnnxEngine(tiny_model).threads == available_cpus()
+    engine = OnnxEngine(tiny_model, threads=1)
+    assert engine.threads == 1
+    assert engine.session.get_session_options().intra_op_num_threads == 1
+
+
+def test_metadata_is_read(tiny_model):
+    info = OnnxEngine(tiny_model).info
+    assert (info.name, info.preset, info.native_num_points, info.opset) == ("ifnet", "tiny-test", 64, "17")
+    assert info.version == "0" * 12 and info.config == {"num_points": 64} and len(info.file_sha256) == 64
+    assert [spec.name for spec in info.inputs] == ["source", "target"]
+    assert [spec.datatype for spec in info.outputs] == ["FP32", "FP32"]
+
+
+def test_missing_metadata_falls_back_to_768_points_with_a_warning(tmp_path, caplog, tiny_model_builder):
+    path = tiny_model_builder(tmp_path / "bare.onnx", with_metadata=False)
+    with caplog.at_level(logging.WARNING, logger="service.engine"):
+        info = OnnxEngine(path).info
+    assert info.native_num_points == 768 and info.name == "ifnet" and info.weights_sha256 is None
+    assert info.version == info.file_sha256[:12]
+    assert "no `num_points` metadata" in caplog.text
+
+
+def test_a_missing_model_file_fails_with_its_path(tmp_path):
+    with pytest.raises(ModelLoadError, match=r"nowhere\.onnx does not exist: set IFNET_MODEL_PATH"):
+        OnnxEngine(tmp_path / "nowhere.onnx")
+
+
+def test_a_corrupt_model_file_fails_clearly(tmp_path):
+    corrupt = tmp_path / "corrupt.onnx"
+    corrupt.write_bytes(b"\x08\x07 definitely not a protobuf" * 10)
+    with pytest.raises(ModelLoadError, match="could not be loaded by onnxruntime"):
+        OnnxEngine(corrupt)
+
+
+def test_a_model_with_other_inputs_is_refused(tmp_path):
+    onnx = pytest.importorskip("onnx")
+    from onnx import TensorProto, helper
+
+    graph = helper.make_graph(
+        [helper.make_node("Identity", ["points"], ["features"])],
+        "other",
+        [helper.make_tensor_value_info("points", TensorProto.FLOAT, [1, 3])],
+        [helper.make_tensor_value_info("features", TensorProto.FLOAT, [1, 3])],
+    )
+    model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 17)])
+    model.ir_version = 8
+    onnx.save(model, str(tmp_path / "other.onnx"))
+    with pytest.raises(ModelLoadError, match="not an IFNet registration export"):
+        OnnxEngine(tmp_path / "other.onnx")
+
+
+@pytest.mark.anyio
+async def test_app_startup_fails_without_a_model(tmp_path):
+    from service.app import create_app
+
+    app = create_app(Settings(model_path=tmp_path / "missing.onnx"))
+    with pytest.raises(ModelLoadError, match="missing.onnx does not exist"):
+        async with app.router.lifespan_context(app):
+            pass
+
+
+def test_settings_come_from_the_environment(monkeypatch):
+    monkeypatch.setenv("IFNET_MAX_BATCH_SIZE", "6")
+    monkeypatch.setenv("IFNET_MAX_BATCH_DELAY_MS", "2.5")
+    monkeypatch.setenv("IFNET_API_KEY", "k")
+    monkeypatch.setenv("IFNET_THREADS", "3")
+    settings = Settings()
+    assert (settings.max_batch_size, settings.max_batch_delay_ms, settings.threads) == (6, 2.5, 3)
+    assert settings.api_key.get_secret_value() == "k"
+    assert settings.model_path == REPO / "service" / "models" / "ifnet.onnx"
+    assert Settings(max_batch_size=2).max_batch_size == 2  # explicit values win over the environment
+    monkeypatch.setenv("IFNET_API_KEY", "")
+    assert Settings().api_key is None  # an empty key (an absent optional secret) means no key
+
+
+def test_the_service_never_imports_torch():
+    """Import every service module (and build the app) with torch made unimportable."""
+    code = (
+        "import sys\n"
+        "class NoTorch:\n"
+        "    def find_spec(self, name, path=None, target=None):\n"
+        "        if name == 'torch' or name.startswith('torch.'):\n"
+        "            raise ImportError('torch is not installed in the serving image')\n"
+        "sys.meta_path.insert(0, NoTorch())\n"
+        "import pkgutil, importlib, service\n"
+        "for module in pkgutil.iter_modules(service.__path__):\n"
+        "    importlib.import_module('service.' + module.name)\n"
+        "from service.app import create_app\n"
+        "create_app().openapi()\n"
+        "assert 'torch' not in sys.modules\n"
+        "print('ok')\n"
+    )
+    env = {**os.environ, "PYTHONPATH": str(REPO)}
+    result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, timeout=120)
+    assert result.returncode == 0, result.stderr
+    assert result.stdout.strip() == "ok"
+    for source in (REPO / "service").rglob("*.py"):
+        assert "import torch" not in source.read_text(), source

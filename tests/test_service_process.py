@@ -1,0 +1,153 @@
+"""The real thing: `python -m service` under uvicorn on a free loopback port, the command-line
+client against it, graceful shutdown on SIGTERM, and a clear failure without a model."""
+
+import json
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+from concurrent.futures import ThreadPoolExecutor
+from contextlib import contextmanager
+from pathlib import Path
+
+import httpx
+import numpy as np
+import pytest
+
+from service.client import RegistrationClient
+from service.formats import read_cloud_file, write_ply
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def free_port() -> int:
+    with socket.socket() as probe:
+        probe.bind(("127.0.0.1", 0))
+        return probe.getsockname()[1]
+
+
+@contextmanager
+def service_process(tmp_path: Path, model: Path, **settings: str):
+    port = free_port()
+    log = tmp_path / f"service-{port}.log"
+    env = {**os.environ, "PYTHONPATH": str(REPO), **{f"IFNET_{key.upper()}": value for key, value in settings.items()}}
+    command = [sys.executable, "-m", "service", "--port", str(port), "--model-path", str(model)]
+    with log.open("w") as output:
+        process = subprocess.Popen(command, env=env, stdout=output, stderr=subprocess.STDOUT)
+    url = f"http://127.0.0.1:{port}"
+    try:
+        for _ in range(600):  # hang guard: up to a minute for imports, model load and warm-up
+            if process.poll() is not None:
+                raise AssertionError(f"service exited with {process.returncode}:\n{log.read_text()}")
+            try:
+                if httpx.get(f"{url}/ready", timeout=1).status_code == 200:
+                    break
+            except httpx.TransportError:
+                pass
+            time.sleep(0.1)
+        else:
+            raise AssertionError(f"service never became ready:\n{log.read_text()}")
+        yield process, url, log
+    finally:
+        if process.poll() is None:
+            process.terminate()
+            process.wait(timeout=60)
+
+
+def run_client(*args: str) -> subprocess.CompletedProcess:
+    env = {**os.environ, "PYTHONPATH": str(REPO)}
+    return subprocess.run(
+        [sys.executable, "-m", "service.client", *args], capture_output=True, text=True, env=env, timeout=120
+    )
+
+
+def test_server_and_command_line_client(tmp_path, tiny_model):
+    rng = np.random.default_rng(0)
+    source = rng.normal(size=(300, 3))
+    target = source @ np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]]).T + [1.0, 2.0, 3.0]
+    write_ply(tmp_path / "source.ply", source)
+    np.save(tmp_path / "target.npy", target)
+    (tmp_path / "notes.txt").write_text("not a cloud")
+
+    with service_process(tmp_path, tiny_model, max_batch_size="2") as (process, url, log):
+        assert httpx.get(f"{url}/health").json()["ready"] is True
+        printed = run_client(str(tmp_path / "source.ply"), str(tmp_path / "target.npy"), "--url", url)
+        as_json = run_client(
+            str(tmp_path / "source.ply"),
+            str(tmp_path / "target.npy"),
+            "--url",
+            url,
+            "--refine",
+            "--json",
+            "--output",
+            str(tmp_path / "aligned.ply"),
+        )
+        refused = run_client(str(tmp_path / "notes.txt"), str(tmp_path / "target.npy"), "--url", url)
+        with RegistrationClient(url) as client:
+            from_arrays = client.register(source, target, seed=0)
+            assert client.ready()
+
+    assert printed.returncode == 0, printed.stderr
+    lines = printed.stdout.splitlines()
+    assert lines[0] == "transform (source -> target):" and len(lines[1].split()) == 4
+    assert lines[5].startswith("fitness ")
+    assert as_json.returncode == 0, as_json.stderr
+    result = json.loads(as_json.stdout)
+    transform = np.asarray(result["transform"])
+    assert result["refinement"]["iterations"] >= 1
+    aligned = read_cloud_file(tmp_path / "aligned.ply")
+    np.testing.assert_allclose(aligned, source @ transform[:3, :3].T + transform[:3, 3], atol=1e-5)
+    assert refused.returncode == 1 and "HTTP 415" in refused.stderr
+    np.testing.assert_allclose(from_arrays["transform"][3], [0, 0, 0, 1])
+
+
+def test_sigterm_finishes_in_flight_requests_then_exits(tmp_path, tiny_model):
+    # Clouds big enough that farthest-point sampling keeps each request busy for a while.
+    rng = np.random.default_rng(1)
+    clouds = [rng.normal(size=(12_000, 3)).tolist() for _ in range(2)]
+    request = {"source": clouds[0], "target": clouds[1], "max_points": 1024}
+
+    def post() -> int:
+        return httpx.post(f"{url}/register", json=request, timeout=120).status_code
+
+    with service_process(tmp_path, tiny_model, max_network_points="1024") as (process, url, log):
+        with ThreadPoolExecutor(4) as pool:
+            pending = [pool.submit(post) for _ in range(4)]
+            for _ in range(3000):  # hang guard
+                if httpx.get(f"{url}/health").json()["in_flight"] == 4:
+                    break
+                time.sleep(0.02)
+            else:
+                raise AssertionError("the four requests never were in flight together")
+            process.send_signal(signal.SIGTERM)
+            statuses = [future.result() for future in pending]
+        exit_code = process.wait(timeout=60)
+
+    assert statuses == [200, 200, 200, 200]
+    # uvicorn re-raises the signal it caught once shutdown is complete, so the parent sees SIGTERM.
+    assert exit_code in (0, -signal.SIGTERM)
+    text = log.read_text()
+    assert "batcher drained" in text and "Finished server process" in text
+
+
+def test_startup_fails_clearly_without_a_model(tmp_path):
+    env = {**os.environ, "PYTHONPATH": str(REPO)}
+    missing = tmp_path / "missing.onnx"
+    result = subprocess.run(
+        [sys.executable, "-m", "service", "--model-path", str(missing), "--port", str(free_port())],
+        capture_output=True,
+        text=True,
+        env=env,
+        timeout=120,
+    )
+    assert result.returncode == 1
+    assert f"cannot start: model file {missing} does not exist" in result.stderr
+
+
+@pytest.mark.parametrize("value", ["0", "lots"])
+def test_invalid_settings_are_reported(tmp_path, value):
+    env = {**os.environ, "PYTHONPATH": str(REPO), "IFNET_MAX_BATCH_SIZE": value}
+    result = subprocess.run([sys.executable, "-m", "service"], capture_output=True, text=True, env=env, timeout=120)
+    assert result.returncode == 2 and "max_batch_size" in result.stderr

@@ -1,0 +1,228 @@
+"""The registration pipeline (service.registration) without HTTP: input checks, resampling,
+normalisation, mapping back to user units, composition with `init`, ICP refinement.
+
+The "model" here is an oracle that solves the normalised pair exactly by least squares on
+corresponding points (the target is a rigid motion of the source, and both are resampled with
+the same indices), so any error in normalising, denormalising or composing shows up directly.
+"""
+
+import asyncio
+
+import numpy as np
+import pytest
+
+from model.geometry import apply_transform, degeneracy, euler_to_matrix, from_matrix, rotation_angle_deg, to_matrix
+from service.registration import (
+    InvalidInput,
+    Prediction,
+    RefineParams,
+    RegistrationFailed,
+    RegistrationParams,
+    as_points,
+    as_rigid_transform,
+    register_clouds,
+    sample_indices,
+)
+
+# Float32 rounding of the network's input is the only error the oracle leaves.
+ROTATION_TOLERANCE_DEG = 1e-5
+TRANSLATION_TOLERANCE = 1e-7  # times the cloud's radius
+
+TRUE_ROTATION = euler_to_matrix([40.0, 25.0, -30.0])
+TRUE_TRANSLATION = np.array([2.0, -1.5, 0.3])  # metres
+INIT = to_matrix(euler_to_matrix([10.0, 0.0, 5.0]), np.array([0.5, 0.2, 0.0]))
+
+
+def kabsch(source: np.ndarray, target: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Least-squares rigid motion between corresponding points."""
+    source_centre, target_centre = source.mean(axis=0), target.mean(axis=0)
+    u, _, vt = np.linalg.svd((source - source_centre).T @ (target - target_centre))
+    rotation = vt.T @ np.diag([1.0, 1.0, np.sign(np.linalg.det(vt.T @ u.T))]) @ u.T
+    return rotation, target_centre - rotation @ source_centre
+
+
+async def oracle(source: np.ndarray, target: np.ndarray) -> Prediction:
+    assert source.dtype == np.float32 and target.dtype == np.float32
+    # The network's input contract: each cloud centred, both inside the unit sphere.
+    for cloud in (source, target):
+        assert np.abs(cloud.mean(axis=0)).max() < 1e-5
+        assert np.linalg.norm(cloud, axis=1).max() <= 1.0 + 1e-6
+    return Prediction(*kabsch(source.astype(np.float64), target.astype(np.float64)))
+
+
+def register(source, target, params, predict=oracle):
+    return asyncio.run(register_clouds(source, target, params, predict))
+
+
+def radius(points: np.ndarray) -> float:
+    return float(np.linalg.norm(points - points.mean(axis=0), axis=1).max())
+
+
+@pytest.mark.parametrize(
+    ("scan", "sampling"),
+    [
+        ("pcl_bunny_view0", "fps"),  # 397 points: upsampled to 768
+        ("kitti_000008_fov", "fps"),  # 17k lidar points in metres
+        ("nuscenes_lidar_top", "random"),  # 35k points with 3,469 exact duplicates
+        ("pcl_office1", "random"),  # 254k points
+    ],
+)
+def test_known_transform_is_recovered_on_real_scans(real_scans, scan, sampling):
+    source = real_scans[scan]
+    target = apply_transform(source, TRUE_ROTATION, TRUE_TRANSLATION)
+    result = register(source, target, RegistrationParams(num_points=768, sampling=sampling, seed=3, init=INIT))
+
+    assert rotation_angle_deg(result.rotation, TRUE_ROTATION) < ROTATION_TOLERANCE_DEG
+    assert np.linalg.norm(result.translation - TRUE_TRANSLATION) < TRANSLATION_TOLERANCE * radius(source)
+    np.testing.assert_allclose(result.transform, to_matrix(result.rotation, result.translation))
+    assert result.fitness == 1.0 and result.inlier_rmse < 1e-6 * radius(source)
+    distinct = len(np.unique(source, axis=0))
+    assert result.source.received == len(source)
+    assert result.source.duplicates_removed == len(source) - distinct
+    assert result.source.network_points == 768 and result.source.upsampled == (distinct < 768)
+
+
+def test_without_init_and_with_other_network_sizes(real_scans):
+    source = real_scans["pcl_bunny_view4"]
+    target = apply_transform(source, TRUE_ROTATION, TRUE_TRANSLATION)
+    for count in (64, 1024):
+        result = register(source, target, RegistrationParams(num_points=count))
+        assert result.source.network_points == count
+        assert rotation_angle_deg(result.rotation, TRUE_ROTATION) < ROTATION_TOLERANCE_DEG
+        assert np.linalg.norm(result.translation - TRUE_TRANSLATION) < TRANSLATION_TOLERANCE * radius(source)
+
+
+def test_the_answer_does_not_depend_on_units(real_scans):
+    """Millimetres instead of metres: same rotation, translation 1000 times larger."""
+    source = real_scans["pcl_bunny_view0"]
+    target = apply_transform(source, TRUE_ROTATION, TRUE_TRANSLATION)
+    metres = register(source, target, RegistrationParams(num_points=256))
+    millimetres = register(source * 1000.0, target * 1000.0, RegistrationParams(num_points=256))
+    np.testing.assert_allclose(millimetres.rotation, metres.rotation, atol=1e-6)
+    np.testing.assert_allclose(millimetres.translation, metres.translation * 1000.0, rtol=1e-6, atol=1e-6)
+    assert millimetres.fitness_threshold == pytest.approx(metres.fitness_threshold * 1000.0)
+
+
+def test_refinement_corrects_a_network_error_in_user_units(real_scans):
+    """The "network" is 3 degrees and 3% of the radius off; ICP on the full clouds fixes it."""
+    source = real_scans["kitti_000008_fov"]
+    rng = np.random.default_rng(0)
+    noise = rng.normal(scale=1e-4 * radius(source), size=source.shape)
+    target = apply_transform(source, TRUE_ROTATION, TRUE_TRANSLATION) + noise
+    error_rotation = euler_to_matrix([3.0, 0.0, 0.0])
+
+    async def three_degrees_off(source_n, target_n):
+        exact = await oracle(source_n, target_n)
+        return Prediction(error_rotation @ exact.rotation, exact.translation + [0.03, 0.0, 0.0])
+
+    params = RegistrationParams(num_points=768, sampling="random", refine=RefineParams())
+    result = register(source, target, params, predict=three_degrees_off)
+    network_error = rotation_angle_deg(result.refinement.network_rotation, TRUE_ROTATION)
+    assert 2.9 < network_error < 3.1
+    assert rotation_angle_deg(result.rotation, TRUE_ROTATION) < 0.01
+    assert np.linalg.norm(result.translation - TRUE_TRANSLATION) < 1e-4 * radius(source)
+    # The default correspondence distance is 0.05 of the normalised radius, in metres here.
+    assert result.refinement.max_distance == pytest.approx(0.05 * radius(source), rel=0.05)
+    assert result.refinement.iterations >= 1
+    assert result.fitness > 0.99
+
+
+def test_sampling_is_reproducible_and_per_cloud(real_scans):
+    cloud = real_scans["kitti_000008_fov"]
+    for sampling in ("fps", "random"):
+        first = sample_indices(cloud, 256, sampling, seed=5, fps_max_input=4096)
+        again = sample_indices(cloud, 256, sampling, seed=5, fps_max_input=4096)
+        np.testing.assert_array_equal(first, again)
+        assert len(np.unique(first)) == 256
+    assert not np.array_equal(
+        sample_indices(cloud, 256, "random", 5, 4096), sample_indices(cloud, 256, "random", 6, 4096)
+    )
+    small = sample_indices(cloud[:100], 256, "fps", seed=0, fps_max_input=4096)
+    assert len(small) == 256 and set(small.tolist()) == set(range(100))  # every point kept, some repeated
+
+
+def test_non_finite_model_output_is_reported(real_scans):
+    source = real_scans["pcl_bunny_view0"]
+
+    async def broken(source_n, target_n):
+        return Prediction(np.full((3, 3), np.nan), np.zeros(3))
+
+    with pytest.raises(RegistrationFailed, match="non-finite"):
+        register(source, source, RegistrationParams(num_points=64), predict=broken)
+
+
+# ---------------------------------------------------------------- input checks
+
+
+def cloud(count: int = 100, seed: int = 0) -> np.ndarray:
+    return np.random.default_rng(seed).normal(size=(count, 3))
+
+
+@pytest.mark.parametrize(
+    ("value", "message"),
+    [
+        ([[1.0, 2.0, 3.0], [4.0, 5.0]], "point 1 has 2 coordinates"),
+        ([[1.0, 2.0, 3.0, 4.0]], r"N x 3\), got shape \[1, 4\]"),
+        ([[1.0, "a", 3.0]], "non-numeric coordinate 'a'"),
+        ([[1.0, None, 3.0]], "non-numeric coordinate None"),
+        ([], "is empty"),
+        ([1.0, 2.0, 3.0], "point 0 must be a list"),
+        ("1 2 3", "must be a list of"),
+        ([[0.0, float("nan"), 1.0], [0.0, 0.0, float("inf")]], r"2 point\(s\) have NaN or infinite.*index 0"),
+        (np.zeros((5, 2)), r"got shape \[5, 2\]"),
+    ],
+)
+def test_as_points_names_the_problem(value, message):
+    with pytest.raises(InvalidInput, match=message) as caught:
+        as_points(value, "source")
+    assert caught.value.field == "source"
+
+
+def test_as_points_accepts_integers_and_arrays():
+    assert as_points([[1, 2, 3], [4, 5, 6]], "target").dtype == np.float64
+    assert as_points(np.ones((4, 3), np.float32), "target").shape == (4, 3)
+
+
+@pytest.mark.parametrize(
+    ("points", "message"),
+    [
+        (np.ones((50, 3)), "all points are identical"),
+        (np.outer(np.arange(50.0), [1.0, 2.0, 3.0]) + 7.0, "all points lie on one line"),
+        (cloud(10), "has 10 points; at least 32"),
+        (np.repeat(cloud(10), 5, axis=0), r"only 10 distinct points \(40 exact duplicates\)"),
+        (cloud(600), "more than the limit of 500"),
+    ],
+)
+def test_clouds_that_cannot_be_registered(points, message):
+    params = RegistrationParams(num_points=64, min_points=32, max_cloud_points=500)
+    with pytest.raises(InvalidInput, match=message) as caught:
+        register(points, cloud(100), params)
+    assert caught.value.field == "source"
+
+
+def test_a_planar_cloud_is_accepted():
+    plane = np.c_[cloud(100)[:, :2], np.zeros(100)]
+    assert degeneracy(plane) is None
+    assert register(plane, plane, RegistrationParams(num_points=64)).fitness == 1.0
+
+
+def test_init_must_be_a_rigid_transform():
+    assert as_rigid_transform(np.round(INIT, 5)).shape == (4, 4)  # a few printed decimals are fine
+    rotation, _ = from_matrix(as_rigid_transform(np.round(INIT, 5)))
+    np.testing.assert_allclose(rotation @ rotation.T, np.eye(3), atol=1e-12)
+    scaled = INIT.copy()
+    scaled[:3, :3] *= 2.0
+    mirrored = INIT @ np.diag([1.0, 1.0, -1.0, 1.0])
+    bad_last_row = INIT.copy()
+    bad_last_row[3] = [0.0, 0.0, 1.0, 1.0]
+    for matrix, message in [
+        (scaled, "not a rigid transform"),
+        (mirrored, "not a rigid transform"),
+        (bad_last_row, "not a rigid transform"),
+        (np.eye(3), r"4x4 matrix, got shape \[3, 3\]"),
+        (np.full((4, 4), np.nan), "NaN or infinite"),
+        ([[1, 2], [3]], "4x4 matrix of numbers"),
+    ]:
+        with pytest.raises(InvalidInput, match=message) as caught:
+            as_rigid_transform(matrix)
+        assert caught.value.field == "init"
