@@ -173,21 +173,28 @@ def crop_nearest(points: np.ndarray, anchor: np.ndarray, count: int) -> np.ndarr
     return points[order[:count]]
 
 
+# The network is scale-sensitive (kNN edges, descriptors). Its training pairs are 768-point crops
+# of unit-sphere shapes, whose largest distance from their own centroid has a median of 1.07
+# (5-95 %: 0.94-1.17, over 500 training pairs); scaling user clouds to that radius rather than
+# 1.0 lowered the median rotation error from 0.44 to 0.29 deg on 40 ModelNet10 test pairs.
+NETWORK_RADIUS = 1.07
+
+
 class Normalisation:
-    """Centre each cloud on its centroid and scale both by one common factor into the unit sphere.
+    """Centre each cloud on its centroid and scale both by one common factor to `radius`.
 
     The network then sees clouds like its training data; `to_user_units` maps a transform found
     on the normalised clouds back to the original coordinates.
     """
 
-    def __init__(self, source: np.ndarray, target: np.ndarray):
+    def __init__(self, source: np.ndarray, target: np.ndarray, radius: float = NETWORK_RADIUS):
         self.source_centre = source.mean(axis=0)
         self.target_centre = target.mean(axis=0)
-        radius = max(
+        extent = max(
             np.linalg.norm(source - self.source_centre, axis=1).max(),
             np.linalg.norm(target - self.target_centre, axis=1).max(),
         )
-        self.scale = 1.0 / radius if radius > 0 else 1.0
+        self.scale = radius / extent if extent > 0 else 1.0
 
     def source(self, points: np.ndarray) -> np.ndarray:
         return (points - self.source_centre) * self.scale

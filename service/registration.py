@@ -2,7 +2,7 @@
 
 `register_clouds` validates both clouds, removes exact duplicates (and reports how many),
 applies the optional initial guess to the source, resamples each cloud to the network's point
-count, centres each and scales both by one common factor into the unit sphere, asks the model
+count, centres each and scales both by one common factor to the network's radius (`model.geometry.NETWORK_RADIUS`), asks the model
 (any async callable) for the transform between the normalised clouds, maps it back into the
 user's units, composes it with the initial guess, optionally refines it with ICP on the full
 clouds, and scores it (Open3D-style fitness and inlier RMSE).
@@ -30,7 +30,7 @@ from model.geometry import (
     to_matrix,
 )
 
-# ICP's correspondence distance and the fitness threshold, in unit-sphere (normalised) units:
+# ICP's correspondence distance and the fitness threshold, in normalised units (clouds of radius NETWORK_RADIUS):
 # 0.05 recovers clean partial pairs exactly, while 0.3 biases the result by about half a degree.
 DEFAULT_DISTANCE_NORMALISED = 0.05
 INIT_RIGIDITY_TOLERANCE = 1e-3  # accepts matrices printed with a few decimals

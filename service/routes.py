@@ -67,6 +67,7 @@ REGISTER_REQUEST_BODY = {
 }
 
 _ERRORS = {
+    400: {"model": ErrorResponse, "description": "Body that cannot be parsed at all (e.g. malformed multipart)."},
     401: {"model": ErrorResponse, "description": "Missing or wrong API key (only when one is configured)."},
     413: {"model": ErrorResponse, "description": "Body larger than the configured limit."},
     415: {"model": ErrorResponse, "description": "Content type or file format not accepted."},
@@ -136,7 +137,7 @@ async def register(
     Send the clouds as JSON lists of [x, y, z], as multipart file parts `source` and `target`
     (PLY, PCD or NPY each), or as one raw NPY [2, N, 3] / NPZ (`source`, `target`) body. Exact
     duplicate points are removed (and counted in the answer), each cloud is resampled to the
-    network's point count, and both are normalised into the unit sphere before the network runs.
+    network's point count, and both are scaled to the radius of the network's training crops before the network runs.
     """
     started = time.perf_counter()
     source, target, parsed = await read_register_body(request, options, service.settings)

@@ -11,7 +11,15 @@ import asyncio
 import numpy as np
 import pytest
 
-from model.geometry import apply_transform, degeneracy, euler_to_matrix, from_matrix, rotation_angle_deg, to_matrix
+from model.geometry import (
+    NETWORK_RADIUS,
+    apply_transform,
+    degeneracy,
+    euler_to_matrix,
+    from_matrix,
+    rotation_angle_deg,
+    to_matrix,
+)
 from service.registration import (
     InvalidInput,
     Prediction,
@@ -43,10 +51,11 @@ def kabsch(source: np.ndarray, target: np.ndarray) -> tuple[np.ndarray, np.ndarr
 
 async def oracle(source: np.ndarray, target: np.ndarray) -> Prediction:
     assert source.dtype == np.float32 and target.dtype == np.float32
-    # The network's input contract: each cloud centred, both inside the unit sphere.
+    # The network's input contract: each cloud centred, the larger one reaching NETWORK_RADIUS.
     for cloud in (source, target):
         assert np.abs(cloud.mean(axis=0)).max() < 1e-5
-        assert np.linalg.norm(cloud, axis=1).max() <= 1.0 + 1e-6
+        assert np.linalg.norm(cloud, axis=1).max() <= NETWORK_RADIUS + 1e-6
+    assert max(np.linalg.norm(source, axis=1).max(), np.linalg.norm(target, axis=1).max()) >= NETWORK_RADIUS - 1e-5
     return Prediction(*kabsch(source.astype(np.float64), target.astype(np.float64)))
 
 
@@ -121,8 +130,8 @@ def test_refinement_corrects_a_network_error_in_user_units(real_scans):
     assert 2.9 < network_error < 3.1
     assert rotation_angle_deg(result.rotation, TRUE_ROTATION) < 0.01
     assert np.linalg.norm(result.translation - TRUE_TRANSLATION) < 1e-4 * radius(source)
-    # The default correspondence distance is 0.05 of the normalised radius, in metres here.
-    assert result.refinement.max_distance == pytest.approx(0.05 * radius(source), rel=0.05)
+    # The default correspondence distance is 0.05 in the normalised frame, in metres here.
+    assert result.refinement.max_distance == pytest.approx(0.05 * radius(source) / NETWORK_RADIUS, rel=0.05)
     assert result.refinement.iterations >= 1
     assert result.fitness > 0.99
 
