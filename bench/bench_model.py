@@ -34,6 +34,25 @@ def median_ms(run, repeats: int) -> float:
     return 1000 * float(np.median(times))
 
 
+def train_step_seconds(model: IFNet, steps: int, n: int) -> float:
+    """Median seconds of one Adam step (forward, the three losses, backward) at batch 4."""
+    from model.training.losses import ifnet_losses
+
+    model.train()
+    optimizer = torch.optim.Adam(model.parameters(), lr=1e-3)
+    source, target = torch.rand(4, n, 3) - 0.5, torch.rand(4, n, 3) - 0.5
+
+    def step() -> None:
+        loss = ifnet_losses(model(source, target), target, model.config).total
+        optimizer.zero_grad()
+        loss.backward()
+        optimizer.step()
+
+    seconds = median_ms(step, steps) / 1000
+    model.eval()
+    return seconds
+
+
 def peak_rss_mb() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
 
@@ -47,6 +66,7 @@ def main() -> None:
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--repeats", type=int, default=5)
     parser.add_argument("--skip-eager", action="store_true")
+    parser.add_argument("--train-steps", type=int, default=0, help="also time this many training steps (batch 4)")
     parser.add_argument("--out", type=Path, default=Path("docs/benchmarks/model"))
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
@@ -71,6 +91,7 @@ def main() -> None:
             )
             size_mb = path.stat().st_size / 1e6
             session = ort_session(path, args.threads)
+            step_s = train_step_seconds(model, args.train_steps, n0) if args.train_steps else float("nan")
             for n in args.points:
                 for batch in args.batches:
                     source = np.random.rand(batch, n, 3).astype(np.float32) - 0.5
@@ -93,6 +114,7 @@ def main() -> None:
                         "onnx_mb": size_mb,
                         "export_s": export_seconds,
                         "peak_rss_mb": peak_rss_mb(),
+                        "train_step_s": step_s,
                     }
                     rows.append(row)
                     print(
@@ -104,18 +126,22 @@ def main() -> None:
 
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.with_suffix(".json").write_text(json.dumps({"threads": args.threads, "rows": rows}, indent=2))
-    header = "| preset | params | N | batch | ORT ms/pair | eager ms/pair | ORT speed-up | ONNX MB | export s |"
+    header = (
+        "| preset | params | N | batch | ORT ms/pair | eager ms/pair | ORT speed-up | ONNX MB | export s "
+        "| train step s (batch 4) |"
+    )
     lines = [
         f"Command: `python bench/{Path(__file__).name} {' '.join(sys.argv[1:])}` ({args.threads} threads, "
         f"median of {args.repeats})",
         "",
         header,
-        "|---" * 9 + "|",
+        "|---" * 10 + "|",
     ]
     for r in rows:
         lines.append(
             f"| {r['preset']} | {r['parameters']:,} | {r['points']} | {r['batch']} | {r['ort_ms_per_pair']:.1f}"
-            f" | {r['eager_ms_per_pair']:.1f} | {r['speedup']:.2f}x | {r['onnx_mb']:.2f} | {r['export_s']:.1f} |"
+            f" | {r['eager_ms_per_pair']:.1f} | {r['speedup']:.2f}x | {r['onnx_mb']:.2f} | {r['export_s']:.1f}"
+            f" | {r['train_step_s']:.2f} |"
         )
     args.out.with_suffix(".md").write_text("\n".join(lines) + "\n")
     print(f"wrote {args.out.with_suffix('.md')}")
