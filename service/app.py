@@ -5,11 +5,13 @@ import logging
 from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
 
-from fastapi import FastAPI, HTTPException, Request
+from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
 from fastapi.openapi.utils import get_openapi
 from fastapi.responses import JSONResponse
 from pydantic import ValidationError
+from starlette.exceptions import HTTPException as StarletteHTTPException
+from starlette.requests import ClientDisconnect
 
 from service import __version__
 from service.batcher import InferenceError, MicroBatcher, QueueFullError, RequestTimeoutError, ShuttingDownError
@@ -144,15 +146,18 @@ def _install_error_handlers(app: FastAPI) -> None:
         return _error(request, 503, f"{error}; retry on another instance", headers={"Retry-After": "1"})
 
     @app.exception_handler(ClientDisconnected)
-    async def on_disconnect(request: Request, error: ClientDisconnected) -> JSONResponse:
+    @app.exception_handler(ClientDisconnect)  # gone while its body was still arriving
+    async def on_disconnect(request: Request, error: Exception) -> JSONResponse:
         return _error(request, 499, str(error))  # nobody reads it; recorded in the metrics as 499
 
     @app.exception_handler(InferenceError)
     async def on_inference_error(request: Request, error: InferenceError) -> JSONResponse:
         return _error(request, 500, f"internal error: {error}")
 
-    @app.exception_handler(HTTPException)
-    async def on_http_exception(request: Request, error: HTTPException) -> JSONResponse:
+    # Starlette's class, not FastAPI's subclass: FastAPI and Starlette raise the base class themselves
+    # (404, 405, unparseable bodies), and those answers must have the same shape as every other error.
+    @app.exception_handler(StarletteHTTPException)
+    async def on_http_exception(request: Request, error: StarletteHTTPException) -> JSONResponse:
         return _error(request, error.status_code, str(error.detail), headers=getattr(error, "headers", None))
 
 

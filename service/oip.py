@@ -34,7 +34,7 @@ OUTPUTS = [
     V2TensorMetadata(name="rotation", datatype="FP32", shape=[-1, 3, 3]),
     V2TensorMetadata(name="translation", datatype="FP32", shape=[-1, 3]),
 ]
-_ERRORS = {status: {"model": V2Error} for status in (401, 404, 413, 422, 429, 503, 504)}
+_ERRORS = {status: {"model": V2Error} for status in (400, 401, 404, 413, 422, 429, 503, 504)}
 
 ModelName = Annotated[str, Path(description="The served model's name.", examples=["ifnet"])]
 
@@ -61,7 +61,10 @@ async def server_ready(service: Service) -> JSONResponse:
 
 
 @router.get(
-    "/models/{model_name}/ready", response_model=V2Ready, responses={503: {"model": V2Ready}}, summary="Model readiness"
+    "/models/{model_name}/ready",
+    response_model=V2Ready,
+    responses={404: {"model": V2Error}, 503: {"model": V2Ready}},
+    summary="Model readiness",
 )
 async def model_ready(model_name: ModelName, service: LoadedService) -> JSONResponse:
     _check_name(model_name, service)

@@ -2,10 +2,11 @@
 
 `register_clouds` validates both clouds, removes exact duplicates (and reports how many),
 applies the optional initial guess to the source, resamples each cloud to the network's point
-count, centres each and scales both by one common factor to the network's radius (`model.geometry.NETWORK_RADIUS`), asks the model
-(any async callable) for the transform between the normalised clouds, maps it back into the
-user's units, composes it with the initial guess, optionally refines it with ICP on the full
-clouds, and scores it (Open3D-style fitness and inlier RMSE).
+count, centres each and scales both by one common factor to the network's radius
+(`model.geometry.NETWORK_RADIUS`), asks the model (any async callable) for the transform between
+the normalised clouds, maps it back into the user's units, composes it with the initial guess,
+optionally refines it with ICP on the full clouds, and scores it (Open3D-style fitness and
+inlier RMSE).
 """
 
 import asyncio

@@ -1,0 +1,318 @@
+"""Faults: a bad model file, a pair timing out inside a running batch, clients that vanish.
+
+Related checks elsewhere (not repeated here): a missing model file (test_service_process.py and
+test_service_engine.py), a queued pair timing out (504) and a queued client disconnecting (499)
+in test_service_batching.py, SIGTERM with four requests in flight in test_service_process.py,
+and SIGTERM under sustained overload in bench/bench_overload.py.
+"""
+
+import asyncio
+import json
+import os
+import socket
+import struct
+import subprocess
+import sys
+import threading
+import time
+from contextlib import contextmanager
+from pathlib import Path
+
+import httpx
+import numpy as np
+import pytest
+
+from service.batcher import MicroBatcher, RequestTimeoutError
+from service.engine import OnnxEngine
+from service.settings import Settings
+
+REPO = Path(__file__).resolve().parents[1]
+JSON = {"content-type": "application/json"}
+
+
+def free_port() -> int:
+    with socket.socket() as probe:
+        probe.bind(("127.0.0.1", 0))
+        return probe.getsockname()[1]
+
+
+def accepts_connections(port: int) -> bool:
+    with socket.socket() as probe:
+        probe.settimeout(0.2)
+        return probe.connect_ex(("127.0.0.1", port)) == 0
+
+
+def start_and_watch(command: list[str], port: int, env: dict) -> tuple[subprocess.CompletedProcess, bool]:
+    """Run a server command to its end (hang guard 120 s); also report whether the port ever answered."""
+    process = subprocess.Popen(command, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    served = False
+    deadline = time.monotonic() + 120
+    while process.poll() is None and time.monotonic() < deadline:
+        served = served or accepts_connections(port)
+        time.sleep(0.05)
+    if process.poll() is None:
+        process.kill()
+    stdout, stderr = process.communicate(timeout=30)
+    return subprocess.CompletedProcess(command, process.returncode, stdout, stderr), served
+
+
+# ---------------------------------------------------------------- bad model files
+
+
+def corrupt_variants(tmp_path: Path, tiny_model: Path) -> dict[str, Path]:
+    model = tiny_model.read_bytes()
+    variants = {
+        "garbage": np.random.default_rng(0).bytes(4096),
+        "truncated": model[: len(model) // 2],
+        "empty": b"",
+        "flipped": model[:40] + bytes(255 - b for b in model[40:80]) + model[80:],
+    }
+    paths = {}
+    for name, data in variants.items():
+        paths[name] = tmp_path / f"{name}.onnx"
+        paths[name].write_bytes(data)
+    return paths
+
+
+@pytest.mark.parametrize("variant", ["garbage", "truncated", "empty"])
+def test_a_corrupt_model_stops_startup_with_a_clear_message(tmp_path, tiny_model, variant):
+    path = corrupt_variants(tmp_path, tiny_model)[variant]
+    port = free_port()
+    env = {**os.environ, "PYTHONPATH": str(REPO)}
+    command = [sys.executable, "-m", "service", "--model-path", str(path), "--port", str(port)]
+    result, served = start_and_watch(command, port, env)
+    assert result.returncode == 1, result.stderr
+    assert f"ifnet-serve: cannot start: model file {path} could not be loaded by onnxruntime" in result.stderr
+    assert "Traceback" not in result.stderr  # a message, not a crash
+    assert not served  # never a half-alive server: the port was not opened
+
+
+def test_corrupt_models_are_refused_at_load_for_every_variant(tmp_path, tiny_model):
+    from service.engine import ModelLoadError
+
+    for name, path in corrupt_variants(tmp_path, tiny_model).items():
+        with pytest.raises(ModelLoadError, match="could not be loaded|not an IFNet registration export") as caught:
+            OnnxEngine(path)
+        assert str(path) in str(caught.value), name
+    with pytest.raises(ModelLoadError, match="does not exist"):
+        OnnxEngine(tmp_path)  # a directory is not a model file
+
+
+def test_uvicorn_factory_with_a_corrupt_model_fails_at_startup(tmp_path, tiny_model):
+    """Served by uvicorn directly (not `python -m service`): the lifespan fails and uvicorn exits."""
+    path = corrupt_variants(tmp_path, tiny_model)["garbage"]
+    port = free_port()
+    env = {**os.environ, "PYTHONPATH": str(REPO), "IFNET_MODEL_PATH": str(path)}
+    command = [sys.executable, "-m", "uvicorn", "--factory", "service.app:create_app", "--port", str(port)]
+    result, served = start_and_watch(command, port, env)
+    assert result.returncode != 0
+    assert "could not be loaded by onnxruntime" in result.stderr
+    assert "Application startup failed" in result.stderr
+    assert not served
+
+
+# ---------------------------------------------------------------- one pair timing out inside a batch
+
+
+class StepEngine:
+    """Each model call waits at its own gate: the test opens them one by one."""
+
+    def __init__(self, engine: OnnxEngine):
+        self.engine = engine
+        self.info = engine.info
+        self.gates = [threading.Event() for _ in range(8)]
+        self.calls: list[int] = []
+
+    def run(self, source: np.ndarray, target: np.ndarray):
+        index = len(self.calls)
+        self.calls.append(len(source))
+        if not self.gates[index].wait(timeout=60):
+            raise TimeoutError("the test never opened this call's gate")
+        return self.engine.run(source, target)
+
+
+def clouds(seed: int) -> tuple[np.ndarray, np.ndarray]:
+    rng = np.random.default_rng(seed)
+    return rng.normal(size=(64, 3)).astype(np.float32), rng.normal(size=(64, 3)).astype(np.float32)
+
+
+async def wait_until(condition, what: str) -> None:
+    for _ in range(6_000):  # hang guard, not a timing assertion
+        if condition():
+            return
+        await asyncio.sleep(0.005)
+    raise AssertionError(f"never reached: {what}")
+
+
+@pytest.mark.anyio
+async def test_a_pair_timing_out_mid_batch_does_not_affect_the_others(tiny_model):
+    engine = StepEngine(OnnxEngine(tiny_model))
+    batcher = MicroBatcher(engine, max_batch_size=4, max_queue_size=16)
+    batcher.start()
+    first = asyncio.ensure_future(batcher.submit(*clouds(0), timeout_s=60))
+    await wait_until(lambda: engine.calls == [1], "first call running")
+    # Three pairs queue behind it; the middle one will give up while their batch is running.
+    impatient = asyncio.ensure_future(batcher.submit(*clouds(1), timeout_s=0.3))
+    patient = [asyncio.ensure_future(batcher.submit(*clouds(seed), timeout_s=60)) for seed in (2, 3)]
+    await wait_until(lambda: batcher.queue_depth == 3, "three pairs queued")
+    engine.gates[0].set()
+    await wait_until(lambda: engine.calls == [1, 3], "the batch of three running")
+    with pytest.raises(RequestTimeoutError):
+        await impatient  # timed out while its batch was inside the model
+    behind = asyncio.ensure_future(batcher.submit(*clouds(4), timeout_s=60))
+    engine.gates[1].set()
+    engine.gates[2].set()
+    results = await asyncio.gather(first, *patient, behind)
+    await batcher.close(grace_s=10)
+
+    assert engine.calls == [1, 3, 1]
+    for seed, result in zip((0, 2, 3, 4), results, strict=True):
+        rotation, translation = engine.engine.run(*(cloud[None] for cloud in clouds(seed)))
+        np.testing.assert_allclose(result.rotation, rotation[0], atol=1e-6)
+        np.testing.assert_allclose(result.translation, translation[0], atol=1e-6)
+    assert [result.batch_size for result in results] == [1, 3, 3, 1]  # the batch still counted three
+    assert batcher.queue_depth == 0
+
+
+# ---------------------------------------------------------------- clients that vanish
+
+
+def payload(seed: int, count: int = 80, **options) -> bytes:
+    rng = np.random.default_rng(seed)
+    source = rng.normal(size=(count, 3))
+    return json.dumps({"source": source.tolist(), "target": (source + 0.1).tolist(), **options}).encode()
+
+
+@pytest.mark.anyio
+async def test_a_client_leaving_while_its_batch_runs_leaves_no_stuck_work(serve, tiny_model):
+    engine = StepEngine(OnnxEngine(tiny_model))
+    settings = Settings(model_path=tiny_model, warmup=False, max_batch_size=4)
+    async with serve(settings, engine=engine) as (app, client):
+        state = app.state.service
+        blocker = asyncio.ensure_future(client.post("/register", content=payload(0), headers=JSON))
+        await wait_until(lambda: engine.calls == [1], "first call running")
+
+        body = payload(1)
+        gone = asyncio.Event()
+        messages = [{"type": "http.request", "body": body, "more_body": False}]
+        sent: list[dict] = []
+
+        async def receive():
+            if messages:
+                return messages.pop(0)
+            await gone.wait()
+            return {"type": "http.disconnect"}
+
+        async def send(message):
+            sent.append(message)
+
+        scope = {
+            "type": "http",
+            "asgi": {"version": "3.0"},
+            "http_version": "1.1",
+            "method": "POST",
+            "scheme": "http",
+            "path": "/register",
+            "raw_path": b"/register",
+            "query_string": b"",
+            "root_path": "",
+            "headers": [(b"content-type", b"application/json"), (b"content-length", str(len(body)).encode())],
+            "client": ("127.0.0.1", 50001),
+            "server": ("testserver", 80),
+        }
+        leaving = asyncio.ensure_future(app(scope, receive, send))
+        staying = asyncio.ensure_future(client.post("/register", content=payload(2), headers=JSON))
+        await wait_until(lambda: state.batcher.queue_depth == 2, "two pairs queued")
+        engine.gates[0].set()
+        await wait_until(lambda: engine.calls == [1, 2], "both pairs in the running batch")
+        gone.set()  # the client goes away while its pair is inside the model
+        await leaving
+        engine.gates[1].set()
+        answers = await asyncio.gather(blocker, staying)
+        engine.gates[2].set()
+        after = await client.post("/register", content=payload(3), headers=JSON)
+        health = (await client.get("/health")).json()
+    assert sent[0]["status"] == 499
+    assert [answer.status_code for answer in answers] == [200, 200]
+    assert answers[1].json()["timings_ms"]["batch_size"] == 2
+    assert after.status_code == 200
+    assert health["in_flight"] == 0 and health["queue_depth"] == 0
+
+
+@contextmanager
+def running_service(tmp_path: Path, model: Path, **settings: str):
+    port = free_port()
+    log = tmp_path / "service.log"
+    env = {**os.environ, "PYTHONPATH": str(REPO), **{f"IFNET_{k.upper()}": v for k, v in settings.items()}}
+    with log.open("w") as output:
+        process = subprocess.Popen(
+            [sys.executable, "-m", "service", "--port", str(port), "--model-path", str(model)],
+            env=env,
+            stdout=output,
+            stderr=subprocess.STDOUT,
+        )
+    url = f"http://127.0.0.1:{port}"
+    try:
+        for _ in range(600):  # hang guard
+            if process.poll() is not None:
+                raise AssertionError(f"service exited with {process.returncode}:\n{log.read_text()}")
+            try:
+                if httpx.get(f"{url}/ready", timeout=1).status_code == 200:
+                    break
+            except httpx.TransportError:
+                pass
+            time.sleep(0.1)
+        else:
+            raise AssertionError(f"service never became ready:\n{log.read_text()}")
+        yield port, url, log
+    finally:
+        process.terminate()
+        process.wait(timeout=60)
+
+
+def raw_request(port: int, body: bytes, send_bytes: int, wait_s: float = 0.0) -> None:
+    """Send the headers and the first `send_bytes` of the body, optionally wait, then vanish."""
+    head = (
+        f"POST /register HTTP/1.1\r\nHost: 127.0.0.1\r\nContent-Type: application/json\r\n"
+        f"Content-Length: {len(body)}\r\n\r\n"
+    ).encode()
+    with socket.create_connection(("127.0.0.1", port), timeout=10) as connection:
+        connection.sendall(head + body[:send_bytes])
+        time.sleep(wait_s)
+        connection.setsockopt(socket.SOL_SOCKET, socket.SO_LINGER, struct.pack("ii", 1, 0))  # close with a reset
+
+
+def test_a_real_server_forgets_clients_that_vanish(tmp_path, tiny_model):
+    """uvicorn on loopback: clients that reset mid-upload or while their pair is processed."""
+    heavy = payload(5, count=12_000, max_points=1024)  # farthest-point sampling keeps it busy for a while
+    with running_service(tmp_path, tiny_model, max_network_points="1024") as (port, url, log):
+        for index in range(3):
+            raw_request(port, heavy, send_bytes=len(heavy) // 2)  # mid-upload
+            raw_request(port, heavy, send_bytes=len(heavy), wait_s=0.1 * index)  # while it is processed
+        with httpx.Client(base_url=url, timeout=60) as client:
+            for _ in range(600):  # hang guard: in-flight work drains (threads finish, results dropped)
+                health = client.get("/health").json()
+                statuses = register_statuses(client.get("/metrics").text)
+                if health["in_flight"] == 0 and health["queue_depth"] == 0 and sum(statuses.values()) == 6:
+                    break
+                time.sleep(0.1)
+            else:
+                raise AssertionError(f"work stuck after the clients left: {health}, answers {statuses}")
+            normal = client.post("/register", content=payload(6), headers=JSON)
+    text = log.read_text()
+    # Every vanished client is accounted for as 499 (or 200 if it was answered before it left), none as 500.
+    assert set(statuses) <= {"200", "499"}, (statuses, text[-3000:])
+    assert statuses.get("499", 0) >= 3  # at least the three that left mid-upload
+    assert normal.status_code == 200
+    assert "Traceback" not in text and "Exception in ASGI application" not in text, text[-3000:]
+
+
+def register_statuses(metrics: str) -> dict[str, int]:
+    from prometheus_client.parser import text_string_to_metric_families
+
+    counts: dict[str, int] = {}
+    for family in text_string_to_metric_families(metrics):
+        for sample in family.samples:
+            if sample.name == "ifnet_http_requests_total" and sample.labels.get("route") == "/register":
+                counts[sample.labels["status"]] = counts.get(sample.labels["status"], 0) + int(sample.value)
+    return counts

@@ -1,0 +1,363 @@
+"""Security properties of the service's input handling.
+
+- No pickle anywhere in input parsing: the source of service/ never imports a pickle-based
+  loader nor calls np.load without allow_pickle=False, and pickled uploads (NPY object arrays,
+  in every way a cloud can arrive) are refused without anything being unpickled.
+- The API key is compared in constant time (secrets.compare_digest, never ==), and a request
+  without the key is answered 401 before its body is read.
+- The body size limit is enforced before parsing: a declared Content-Length over the limit is
+  answered 413 without reading the body, a streamed one without calling any parser.
+
+Related checks elsewhere: basic 401/413 behaviour in test_service_api.py, the reader-level
+pickle refusal in test_service_formats.py, the non-root container in test_container.py.
+"""
+
+import ast
+import asyncio
+import io
+import json
+import pickle
+import zipfile
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import service
+from service.settings import Settings
+
+pytestmark = pytest.mark.anyio
+
+SERVICE_DIR = Path(service.__file__).resolve().parent
+SOURCE = np.random.default_rng(3).normal(size=(100, 3))
+TARGET = SOURCE + [0.5, 0.0, 0.0]
+
+# Modules whose loaders execute code from the data they read.
+UNSAFE_MODULES = {"pickle", "cPickle", "_pickle", "dill", "cloudpickle", "joblib", "marshal", "shelve", "torch"}
+UNSAFE_CALLS = {"eval", "exec", "read_pickle", "unsafe_load", "full_load"}
+
+
+# ---------------------------------------------------------------- static check of service/
+
+
+def unsafe_deserialisation(source: str, filename: str = "<source>") -> list[str]:
+    """Places in Python source that could unpickle (or evaluate) data; empty if none."""
+    found = []
+    for node in ast.walk(ast.parse(source, filename)):
+        where = f"{filename}:{getattr(node, 'lineno', '?')}"
+        if isinstance(node, ast.Import):
+            found += [f"{where}: import {a.name}" for a in node.names if a.name.split(".")[0] in UNSAFE_MODULES]
+        elif isinstance(node, ast.ImportFrom) and (node.module or "").split(".")[0] in UNSAFE_MODULES:
+            found.append(f"{where}: from {node.module} import ...")
+        elif isinstance(node, ast.Call):
+            name = node.func.attr if isinstance(node.func, ast.Attribute) else getattr(node.func, "id", "")
+            keywords = {keyword.arg: keyword.value for keyword in node.keywords}
+            if name in UNSAFE_CALLS:
+                found.append(f"{where}: {name}()")
+            if "allow_pickle" in keywords and not (
+                isinstance(keywords["allow_pickle"], ast.Constant) and keywords["allow_pickle"].value is False
+            ):
+                found.append(f"{where}: allow_pickle is not the constant False")
+            if name == "load" and isinstance(node.func, ast.Attribute):
+                owner = node.func.value
+                owner_name = owner.id if isinstance(owner, ast.Name) else getattr(owner, "attr", "")
+                if owner_name in ("np", "numpy") and "allow_pickle" not in keywords:
+                    found.append(f"{where}: np.load without allow_pickle=False")
+                if owner_name == "yaml" and "Loader" not in keywords:
+                    found.append(f"{where}: yaml.load without an explicit Loader")
+    return found
+
+
+def test_the_checker_finds_unsafe_deserialisation():
+    """The static check can fail: each of these snippets is caught."""
+    for snippet in [
+        "import pickle",
+        "import torch.serialization",
+        "from joblib import load",
+        "import numpy as np\nnp.load(f)",
+        "import numpy as np\nnp.load(f, allow_pickle=True)",
+        "import numpy\nnumpy.load(f, allow_pickle=flag)",
+        "import pandas as pd\npd.read_pickle(f)",
+        "import yaml\nyaml.load(text)",
+        "eval(text)",
+    ]:
+        assert unsafe_deserialisation(snippet), snippet
+    assert unsafe_deserialisation("import numpy as np\nnp.load(f, allow_pickle=False)") == []
+
+
+def test_no_unsafe_deserialisation_in_the_service_source():
+    files = sorted(SERVICE_DIR.rglob("*.py"))
+    assert len(files) > 10
+    found = [problem for path in files for problem in unsafe_deserialisation(path.read_text(), path.name)]
+    assert found == []
+    # Every NPY/NPZ read in the service is explicit about refusing pickles.
+    loads = sum(path.read_text().count("np.load(") for path in files)
+    explicit = sum(path.read_text().count("allow_pickle=False") for path in files)
+    assert loads >= 2 and explicit >= loads
+
+
+# ---------------------------------------------------------------- pickled uploads over HTTP
+
+UNPICKLED: list[str] = []
+
+
+def record_unpickling(message: str) -> None:
+    UNPICKLED.append(message)
+
+
+class Payload:
+    """Records that it was unpickled (a real attack would run a command here instead)."""
+
+    def __reduce__(self):
+        return (record_unpickling, ("payload ran",))
+
+
+def pickled_npy(array: np.ndarray) -> bytes:
+    stream = io.BytesIO()
+    np.save(stream, array, allow_pickle=True)
+    return stream.getvalue()
+
+
+def object_array(shape: tuple[int, ...]) -> np.ndarray:
+    array = np.empty(shape, dtype=object)
+    array.flat[0] = Payload()
+    for index in range(1, array.size):
+        array.flat[index] = 0.0
+    return array
+
+
+@pytest.fixture
+def no_unpickling(monkeypatch):
+    """Every way numpy (or anything else) could unpickle now fails the test loudly."""
+    calls: list[str] = []
+
+    def refuse(name):
+        def call(*args, **kwargs):
+            calls.append(name)
+            raise AssertionError(f"pickle.{name} was called while parsing a request")
+
+        return call
+
+    for name in ("load", "loads"):
+        monkeypatch.setattr(pickle, name, refuse(name))
+    UNPICKLED.clear()
+    yield calls
+    UNPICKLED.clear()
+
+
+def npz_with(**arrays: bytes) -> bytes:
+    stream = io.BytesIO()
+    with zipfile.ZipFile(stream, "w") as archive:
+        for name, data in arrays.items():
+            archive.writestr(f"{name}.npy", data)
+    return stream.getvalue()
+
+
+def test_the_payload_would_run_if_unpickled():
+    """Guard: the payload used below really executes when numpy is allowed to unpickle it."""
+    UNPICKLED.clear()
+    np.load(io.BytesIO(pickled_npy(object_array((2, 3)))), allow_pickle=True)
+    assert UNPICKLED == ["payload ran"]
+    UNPICKLED.clear()
+
+
+async def test_pickled_uploads_are_refused_without_unpickling(serve, tiny_model, no_unpickling):
+    plain = io.BytesIO()
+    np.save(plain, TARGET)
+    raw_pickle = pickle.dumps(Payload())
+    async with serve(Settings(model_path=tiny_model)) as (app, client):
+        answers = {
+            "multipart npy": await client.post(
+                "/register",
+                files={"source": ("s.npy", pickled_npy(object_array((100, 3)))), "target": ("t.npy", plain.getvalue())},
+            ),
+            "multipart raw pickle": await client.post(
+                "/register", files={"source": ("s.pkl", raw_pickle), "target": ("t.npy", plain.getvalue())}
+            ),
+            "raw npy body": await client.post(
+                "/register",
+                content=pickled_npy(object_array((2, 100, 3))),
+                headers={"content-type": "application/x-npy"},
+            ),
+            "raw npz body": await client.post(
+                "/register",
+                content=npz_with(source=pickled_npy(object_array((100, 3))), target=plain.getvalue()),
+                headers={"content-type": "application/x-npz"},
+            ),
+            "raw pickle body": await client.post(
+                "/register", content=raw_pickle, headers={"content-type": "application/octet-stream"}
+            ),
+        }
+        still_serving = await client.post("/register", json={"source": SOURCE.tolist(), "target": TARGET.tolist()})
+    for what, response in answers.items():
+        assert response.status_code in (415, 422), f"{what}: {response.status_code} {response.text}"
+    assert "pickle" in answers["multipart npy"].json()["detail"]
+    assert "pickle" in answers["raw npz body"].json()["detail"]
+    assert no_unpickling == [] and UNPICKLED == []
+    assert still_serving.status_code == 200
+
+
+# ---------------------------------------------------------------- raw ASGI helpers
+
+
+def asgi_scope(path: str, headers: dict[str, str], method: str = "POST") -> dict:
+    return {
+        "type": "http",
+        "asgi": {"version": "3.0"},
+        "http_version": "1.1",
+        "method": method,
+        "scheme": "http",
+        "path": path,
+        "raw_path": path.encode(),
+        "query_string": b"",
+        "root_path": "",
+        "headers": [(key.lower().encode(), value.encode()) for key, value in headers.items()],
+        "client": ("127.0.0.1", 50000),
+        "server": ("testserver", 80),
+    }
+
+
+async def call_asgi(app, scope: dict, chunks: list[bytes]) -> tuple[int, dict, list[int]]:
+    """Run one request; returns status, JSON body, and how many body chunks the app pulled."""
+    pulled: list[int] = []
+    sent: list[dict] = []
+    answered = asyncio.Event()
+
+    async def receive() -> dict:
+        if len(pulled) < len(chunks):
+            pulled.append(len(chunks[len(pulled)]))
+            return {"type": "http.request", "body": chunks[len(pulled) - 1], "more_body": len(pulled) < len(chunks)}
+        await answered.wait()  # the client stays connected until it has its answer
+        return {"type": "http.disconnect"}
+
+    async def send(message: dict) -> None:
+        sent.append(message)
+        if message["type"] == "http.response.body" and not message.get("more_body", False):
+            answered.set()
+
+    await app(scope, receive, send)
+    body = b"".join(message.get("body", b"") for message in sent if message["type"] == "http.response.body")
+    return sent[0]["status"], json.loads(body), pulled
+
+
+# ---------------------------------------------------------------- API key
+
+
+async def test_the_api_key_is_compared_in_constant_time(serve, tiny_model, monkeypatch):
+    import service.dependencies as dependencies
+
+    compared: list[tuple[bytes, bytes]] = []
+    real_compare = dependencies.secrets.compare_digest
+
+    def spy(given, expected):
+        compared.append((given, expected))
+        return real_compare(given, expected)
+
+    monkeypatch.setattr(dependencies.secrets, "compare_digest", spy)
+    key = "correct-horse-battery-staple"
+    body = {"source": SOURCE.tolist(), "target": TARGET.tolist()}
+    async with serve(Settings(model_path=tiny_model, api_key=key)) as (app, client):
+        statuses = [
+            (await client.post("/register", json=body, headers=headers)).status_code
+            for headers in (
+                {"X-API-Key": "x"},  # shorter
+                {"X-API-Key": key[:-1] + "X"},  # same length, last byte wrong
+                {"X-API-Key": key + "-and-more"},  # the key is a prefix of it
+                {"X-API-Key": key},
+                {"Authorization": f"Bearer {key}"},
+                {"Authorization": "Bearer wrong"},
+            )
+        ]
+    assert statuses == [401, 401, 401, 200, 200, 401]
+    assert len(compared) == 6  # every key given went through compare_digest
+    assert all(isinstance(given, bytes) and expected == key.encode() for given, expected in compared)
+
+
+def test_no_secret_is_compared_with_equality_operators():
+    """Static check: no ==/!=/in on anything derived from the API key setting in service/."""
+
+    def mentions_secret(node: ast.AST) -> bool:
+        return any(
+            (isinstance(sub, ast.Attribute) and sub.attr in ("api_key", "get_secret_value"))
+            or (isinstance(sub, ast.Name) and sub.id in ("api_key", "expected", "given"))
+            for sub in ast.walk(node)
+        )
+
+    offending = []
+    for path in sorted(SERVICE_DIR.rglob("*.py")):
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.Compare) and mentions_secret(node):
+                operators = {type(op) for op in node.ops}
+                if operators & {ast.Eq, ast.NotEq, ast.In, ast.NotIn, ast.Lt, ast.Gt}:
+                    offending.append(f"{path.name}:{node.lineno}")
+    assert offending == []
+
+
+async def test_a_request_without_the_key_is_refused_before_its_body_is_read(serve, tiny_model):
+    body = json.dumps({"source": SOURCE.tolist(), "target": TARGET.tolist()}).encode()
+    chunks = [body[:1000], body[1000:]]
+    headers = {"content-type": "application/json", "content-length": str(len(body))}
+    async with serve(Settings(model_path=tiny_model, api_key="k")) as (app, client):
+        status, answer, pulled = await call_asgi(app, asgi_scope("/register", headers), chunks)
+        authorised, _, pulled_authorised = await call_asgi(
+            app, asgi_scope("/register", {**headers, "x-api-key": "k"}), chunks
+        )
+    assert status == 401 and "API key" in answer["detail"]
+    assert pulled == []  # not one byte of the body was read
+    assert authorised == 200 and pulled_authorised == [1000, len(body) - 1000]
+
+
+# ---------------------------------------------------------------- body limit
+
+
+@pytest.mark.parametrize("content_type", ["application/json", "application/x-npy", "multipart/form-data; boundary=x"])
+async def test_a_declared_length_over_the_limit_is_refused_before_reading(serve, tiny_model, content_type):
+    headers = {"content-type": content_type, "content-length": str(10_001)}
+    async with serve(Settings(model_path=tiny_model, max_body_bytes=10_000)) as (app, client):
+        status, answer, pulled = await call_asgi(app, asgi_scope("/register", headers), [b"x" * 10_001])
+        v2_status, v2_answer, v2_pulled = await call_asgi(
+            app, asgi_scope("/v2/models/ifnet/infer", headers), [b"x" * 10_001]
+        )
+    assert status == v2_status == 413
+    assert pulled == v2_pulled == []
+    assert "larger than the limit of 10000 bytes" in answer["detail"] and answer["errors"][0]["field"] == "body"
+
+
+async def test_a_streamed_body_over_the_limit_never_reaches_a_parser(serve, tiny_model, monkeypatch):
+    import service.uploads as uploads
+
+    parsed: list[str] = []
+    real_read_pair = uploads.read_pair
+
+    def recording_read_pair(*args, **kwargs):
+        parsed.append("npy")
+        return real_read_pair(*args, **kwargs)
+
+    real_model = uploads.RegisterRequest
+
+    class Spy:
+        @staticmethod
+        def model_validate_json(data, *args, **kwargs):
+            parsed.append("json")
+            return real_model.model_validate_json(data, *args, **kwargs)
+
+    monkeypatch.setattr(uploads, "RegisterRequest", Spy)
+    monkeypatch.setattr(uploads, "read_pair", recording_read_pair)
+
+    json_body = json.dumps({"source": SOURCE.tolist(), "target": TARGET.tolist()}).encode()
+    npy = io.BytesIO()
+    np.save(npy, np.stack([SOURCE, TARGET]))
+    limit = 2_000
+    async with serve(Settings(model_path=tiny_model, max_body_bytes=limit, min_points=8)) as (app, client):
+        results = []
+        for content_type, body in (("application/json", json_body), ("application/x-npy", npy.getvalue())):
+            assert len(body) > 2 * limit
+            chunks = [body[start : start + 500] for start in range(0, len(body), 500)]
+            results.append(await call_asgi(app, asgi_scope("/register", {"content-type": content_type}), chunks))
+        few = np.round(SOURCE[:16], 3).tolist()
+        small = await client.post("/register", json={"source": few, "target": few})
+    for status, answer, pulled in results:
+        assert status == 413, answer
+        assert sum(pulled) <= limit + 500  # reading stopped at the chunk that crossed the limit
+    assert parsed == ["json"]  # only the small request below the limit was parsed
+    assert small.status_code == 200
