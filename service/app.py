@@ -22,7 +22,7 @@ from service.middleware import BodyLimitMiddleware
 from service.oip import router as oip_router
 from service.registration import InvalidInput, RegistrationFailed
 from service.routes import router
-from service.schemas import RegisterRequest
+from service.schemas import RegisterRequest, V2InferRequest
 from service.settings import Settings
 from service.state import ClientDisconnected, ServiceState
 
@@ -162,15 +162,17 @@ def _install_error_handlers(app: FastAPI) -> None:
 
 
 def _install_openapi(app: FastAPI) -> None:
-    """Add the JSON request schema of /register (its body is parsed by hand, for the binary formats)."""
+    """Add the JSON request schemas of the routes that parse their bodies by hand: /register (for
+    the binary formats) and v2 inference (to check the API key before reading the body)."""
 
     def openapi() -> dict:
         if app.openapi_schema is None:
             schema = get_openapi(title=app.title, version=app.version, description=app.description, routes=app.routes)
             components = schema.setdefault("components", {}).setdefault("schemas", {})
-            request_schema = RegisterRequest.model_json_schema(ref_template="#/components/schemas/{model}")
-            components.update(request_schema.pop("$defs", {}))
-            components["RegisterRequest"] = request_schema
+            for body_model in (RegisterRequest, V2InferRequest):
+                request_schema = body_model.model_json_schema(ref_template="#/components/schemas/{model}")
+                components.update(request_schema.pop("$defs", {}))
+                components[body_model.__name__] = request_schema
             app.openapi_schema = schema
         return app.openapi_schema
 

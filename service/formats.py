@@ -183,7 +183,9 @@ def read_pair(data: bytes, max_points: int) -> tuple[np.ndarray, np.ndarray]:
     kind = detect_format(data)
     if kind == "npy":
         shape, dtype = _npy_header(io.BytesIO(data), "body")
-        if dtype.hasobject or len(shape) != 3 or shape[0] != 2 or shape[2] != 3:
+        if dtype.hasobject:
+            raise InvalidInput("body", "NPY object arrays are not accepted (they need pickle); save a numeric array")
+        if len(shape) != 3 or shape[0] != 2 or shape[2] != 3:
             raise InvalidInput(
                 "body", f"a raw NPY body must be a numeric [2, N, 3] array (source, target), got {list(shape)}"
             )

@@ -26,6 +26,8 @@ from service.schemas import (
     V2Tensor,
     V2TensorMetadata,
 )
+from service.state import ServiceState
+from service.uploads import parse_json
 
 router = APIRouter(prefix="/v2", tags=["open inference protocol v2"])
 
@@ -112,14 +114,23 @@ def _clouds(tensor: V2Tensor) -> np.ndarray:
     "/models/{model_name}/infer",
     response_model=V2InferResponse,
     responses=_ERRORS,
-    dependencies=[Depends(require_api_key)],
+    openapi_extra={
+        "requestBody": {
+            "required": True,
+            "content": {"application/json": {"schema": {"$ref": "#/components/schemas/V2InferRequest"}}},
+        }
+    },
+    dependencies=[Depends(require_api_key)],  # checked before the body is read
     summary="Register point clouds (v2 inference)",
 )
-async def infer(
-    model_name: ModelName, payload: V2InferRequest, request: Request, service: LoadedService
-) -> V2InferResponse:
+async def infer(model_name: ModelName, request: Request, service: LoadedService) -> V2InferResponse:
     """Same pipeline and batcher as /register; `parameters` may set `max_points`, `sampling` and `seed`."""
     _check_name(model_name, service)
+    async with service.deadline():
+        return await _infer(await parse_json(request, V2InferRequest), request, service)
+
+
+async def _infer(payload: V2InferRequest, request: Request, service: ServiceState) -> V2InferResponse:
     tensors = {tensor.name: tensor for tensor in payload.inputs}
     for name in ("source", "target"):
         if name not in tensors:

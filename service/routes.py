@@ -137,11 +137,13 @@ async def register(
     Send the clouds as JSON lists of [x, y, z], as multipart file parts `source` and `target`
     (PLY, PCD or NPY each), or as one raw NPY [2, N, 3] / NPZ (`source`, `target`) body. Exact
     duplicate points are removed (and counted in the answer), each cloud is resampled to the
-    network's point count, and both are scaled to the radius of the network's training crops before the network runs.
+    network's point count, and both are scaled to the radius of the network's training crops before
+    the network runs.
     """
     started = time.perf_counter()
-    source, target, parsed = await read_register_body(request, options, service.settings)
-    (result,) = await service.register(request, [(source, target)], parsed)
+    async with service.deadline():
+        source, target, parsed = await read_register_body(request, options, service.settings)
+        (result,) = await service.register(request, [(source, target)], parsed)
     return to_response(result, service.model_description(), started)
 
 

@@ -26,7 +26,9 @@ class Settings(BaseSettings):
     )
     max_queue_size: int = Field(64, ge=1, description="Requests that may wait for the model; more get 429.")
     request_timeout_s: float = Field(
-        30.0, gt=0.0, description="Longest wait for the model (queue and inference); longer gets 504."
+        30.0,
+        gt=0.0,
+        description="Longest time for a whole request (body, parsing, sampling, queue, inference); longer gets 504.",
     )
     max_body_bytes: int = Field(64 * 1024 * 1024, ge=1024, description="Largest request body; larger gets 413.")
     min_points: int = Field(32, ge=8, description="Fewest distinct points a cloud must have.")

@@ -2,14 +2,15 @@
 
 import asyncio
 import time
-from collections.abc import Awaitable
+from collections.abc import AsyncIterator, Awaitable
+from contextlib import asynccontextmanager
 from functools import partial
 from typing import TypeVar
 
 import numpy as np
 from starlette.requests import Request
 
-from service.batcher import MicroBatcher
+from service.batcher import MicroBatcher, RequestTimeoutError
 from service.engine import Engine, ModelInfo
 from service.metrics import LatencyWindow, Metrics
 from service.registration import (
@@ -57,6 +58,23 @@ class ServiceState:
             preset=info.preset,
             native_num_points=info.native_num_points,
         )
+
+    @asynccontextmanager
+    async def deadline(self) -> AsyncIterator[None]:
+        """Bounds a whole request (reading, parsing, preprocessing, queue, inference) by the timeout.
+
+        Raises RequestTimeoutError (504). Work already handed to a thread (parsing a large file,
+        sampling) runs to its end, but the client gets its answer on time and the pair leaves the
+        batcher's queue.
+        """
+        timeout = self.settings.request_timeout_s
+        try:
+            async with asyncio.timeout(timeout):
+                yield
+        except TimeoutError:
+            raise RequestTimeoutError(
+                f"no answer within the request timeout of {timeout:g} s; retry later or send fewer points"
+            ) from None
 
     def params(self, options: RegistrationOptions) -> RegistrationParams:
         limit = self.settings.max_network_points
@@ -123,9 +141,10 @@ async def cancel_on_disconnect(request: Request, work: Awaitable[T]) -> T:
     watcher = asyncio.ensure_future(_disconnected(request))
     try:
         done, _ = await asyncio.wait({work_task, watcher}, return_when=asyncio.FIRST_COMPLETED)
-    except asyncio.CancelledError:
+    except asyncio.CancelledError:  # the request's deadline, or the server stopping
         work_task.cancel()
         watcher.cancel()
+        await asyncio.wait({work_task})  # its pair leaves the batcher's queue before the answer goes out
         raise
     watcher.cancel()
     if work_task in done:

@@ -1,9 +1,11 @@
 """The /register body in any accepted encoding: JSON, multipart file parts, or a raw NPY/NPZ body."""
 
 import asyncio
+from typing import TypeVar
 
 import numpy as np
 from fastapi import HTTPException
+from pydantic import BaseModel
 from starlette.datastructures import UploadFile
 from starlette.requests import Request
 
@@ -11,6 +13,8 @@ from service.formats import UnsupportedFormat, read_cloud, read_pair
 from service.registration import InvalidInput
 from service.schemas import RegisterRequest, RegistrationOptions
 from service.settings import Settings
+
+Model = TypeVar("Model", bound=BaseModel)
 
 JSON_TYPES = ("application/json",)
 MULTIPART_TYPES = ("multipart/form-data",)
@@ -23,6 +27,12 @@ ACCEPTED = (
 class UnsupportedMediaType(HTTPException):
     def __init__(self, detail: str):
         super().__init__(415, detail)
+
+
+async def parse_json(request: Request, schema: type[Model]) -> Model:
+    """Validate a JSON body in a worker thread: a 100k-point body takes a while and must not stall
+    the event loop (health checks, other clients). Raises pydantic's ValidationError (422)."""
+    return await asyncio.to_thread(schema.model_validate_json, await request.body())
 
 
 def media_type(request: Request) -> str:
@@ -40,7 +50,7 @@ async def read_register_body(
     if media in JSON_TYPES or media.endswith("+json"):
         if query_options is not None:
             raise InvalidInput("options", "with a JSON body, put the options in the body, not in the query string")
-        payload = RegisterRequest.model_validate_json(await request.body())
+        payload = await parse_json(request, RegisterRequest)
         return payload.source, payload.target, payload
     if media in MULTIPART_TYPES:
         return await _read_multipart(request, query_options, settings)
