@@ -12,11 +12,16 @@ evaluation.json and one error histogram PNG per set.
 
 import argparse
 import json
+import os
 import time
 from collections.abc import Callable
 from pathlib import Path
 
-import numpy as np
+# Idle OpenMP threads (torch, Open3D, small_gicp) would otherwise spin for a while after each
+# call and steal the CPUs from the next method, skewing every time per pair after the first.
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+
+import numpy as np  # noqa: E402
 
 from model.geometry import icp_refine, registration_errors, summarise_errors
 from model.training.data import DEFAULT_DATA_DIR, Protocol, load_split, make_pair

@@ -88,14 +88,16 @@ def save_checkpoint(path: Path, model: IFNet, optimizer: torch.optim.Optimizer, 
     tmp.replace(path)  # atomic: a kill mid-write never leaves a broken checkpoint
 
 
-def truncate_log(log_path: Path, step: int) -> None:
-    """Drop log rows written after the checkpoint a run resumes from (they will be redone)."""
+def truncate_log(log_path: Path, step: int) -> float:
+    """Drop log rows written after the checkpoint a run resumes from (they will be redone);
+    returns the training seconds logged up to it, so that the clock continues across resumes."""
     with log_path.open() as f:
         rows = [row for row in csv.DictReader(f) if int(row["step"]) <= step]
     with log_path.open("w", newline="") as f:
         writer = csv.DictWriter(f, LOG_FIELDS)
         writer.writeheader()
         writer.writerows(rows)
+    return float(rows[-1]["seconds"]) if rows else 0.0
 
 
 def plot_losses(log_path: Path, png_path: Path) -> None:
@@ -143,7 +145,7 @@ def train(args: argparse.Namespace) -> Path:
     config: IFNetConfig = preset(args.preset)
     model = IFNet(config).to(args.device)
     optimizer = torch.optim.Adam(model.parameters(), lr=args.lr)
-    step = 0
+    step, seconds_before = 0, 0.0
     if checkpoint_path.exists():
         state = torch.load(checkpoint_path, map_location=args.device)
         if IFNetConfig.from_dict(state["config"]) != config:
@@ -151,7 +153,7 @@ def train(args: argparse.Namespace) -> Path:
         model.load_state_dict(state["model"])
         optimizer.load_state_dict(state["optimizer"])
         step = state["step"]
-        truncate_log(log_path, step)
+        seconds_before = truncate_log(log_path, step)
         print(f"resumed from {checkpoint_path} at step {step}")
     else:
         log_path.write_text(",".join(LOG_FIELDS) + "\n")
@@ -168,7 +170,7 @@ def train(args: argparse.Namespace) -> Path:
     model.train()
     progress = tqdm(total=total_steps, initial=step, dynamic_ncols=True)
     running: dict[str, float] = {}
-    started = time.time()
+    started = time.time() - seconds_before
     with log_path.open("a", newline="") as log_file:
         log = csv.DictWriter(log_file, LOG_FIELDS)
         while step < total_steps:
