@@ -34,7 +34,7 @@ from export.onnx_export import (  # noqa: E402
     load_checkpoint,
     ort_session,
 )
-from model.ifnet import IFNet, preset  # noqa: E402
+from model.ifnet import IFNet, IFNetConfig, preset  # noqa: E402
 from model.training.data import evaluation_pairs  # noqa: E402
 
 SHIPPED = DEFAULT_WEIGHTS.exists() and DEFAULT_OUTPUT.exists()
@@ -158,7 +158,7 @@ def test_committed_onnx_matches_committed_weights():
     record = json.loads(DEFAULT_WEIGHTS.with_suffix(".json").read_text())
     assert record["sha256"] == file_sha256(DEFAULT_WEIGHTS)
     model, _ = load_checkpoint(DEFAULT_WEIGHTS)
-    assert json.loads(metadata["config"]) == model.config.to_dict()
+    assert IFNetConfig.from_dict(json.loads(metadata["config"])) == model.config
     assert int(metadata["num_points"]) == model.config.num_points
 
     report = compare_with_torch(session, model, evaluation_pairs(6, seed=11))
