@@ -20,7 +20,7 @@ from tqdm import tqdm
 
 from model.geometry import rotation_angle_deg
 from model.ifnet import PRESETS, IFNet, IFNetConfig, preset
-from model.training.data import DEFAULT_DATA_DIR, Protocol, RegistrationPairs, load_split
+from model.training.data import DEFAULT_DATA_DIR, NOISE_KINDS, Protocol, RegistrationPairs, load_split
 from model.training.losses import ifnet_losses
 
 LOG_FIELDS = [
@@ -52,6 +52,10 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     parser.add_argument("--max-steps", type=int, default=0, help="stop after this many steps (0: no limit)")
     parser.add_argument("--threads", type=int, default=0, help="torch threads (0: torch's default)")
     parser.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
+    parser.add_argument(
+        "--noise", choices=NOISE_KINDS, default="clean", help="noise of the training pairs (validation stays clean)"
+    )
+    parser.add_argument("--init-weights", type=Path, help="start from these weights (fine-tuning) instead of random")
     return parser.parse_args(argv)
 
 
@@ -139,7 +143,7 @@ def train(args: argparse.Namespace) -> Path:
     val_shapes, train_shapes = shapes[-args.val_shapes :], shapes[: -args.val_shapes]
     if args.max_shapes:
         train_shapes = train_shapes[: args.max_shapes]
-    train_pairs = RegistrationPairs(train_shapes, Protocol(), seed=args.seed)
+    train_pairs = RegistrationPairs(train_shapes, Protocol(noise=args.noise), seed=args.seed)
     val_pairs = RegistrationPairs(val_shapes, Protocol(), seed=args.seed + 1)
 
     config: IFNetConfig = preset(args.preset)
@@ -156,6 +160,8 @@ def train(args: argparse.Namespace) -> Path:
         seconds_before = truncate_log(log_path, step)
         print(f"resumed from {checkpoint_path} at step {step}")
     else:
+        if args.init_weights:
+            model.load_state_dict(torch.load(args.init_weights, map_location=args.device, weights_only=True)["model"])
         log_path.write_text(",".join(LOG_FIELDS) + "\n")
 
     steps_per_epoch = len(train_pairs) // args.batch_size
