@@ -144,3 +144,21 @@ def test_shipped_weights_register_modelnet_test_pairs():
     rotation_deg, translation = shipped_model_errors(pairs)
     assert rotation_deg.max() < 0.5, rotation_deg
     assert translation.max() < 0.005, translation
+
+
+def test_fine_tuning_starts_from_the_given_weights_on_noisy_pairs(tmp_path, shapes):
+    from model.ifnet import IFNet, preset
+
+    np.savez(tmp_path / "modelnet10_train.npz", points=shapes)
+    torch.manual_seed(123)
+    start = IFNet(preset("fast"))
+    torch.save({"model": start.state_dict(), "config": start.config.to_dict()}, tmp_path / "start.pt")
+    train_main(
+        ["--preset", "fast", "--data-dir", str(tmp_path), "--out", str(tmp_path / "run"), "--batch-size", "2"]
+        + ["--val-shapes", "2", "--threads", "1", "--max-steps", "1", "--lr", "1e-9", "--noise", "jitter"]
+        + ["--init-weights", str(tmp_path / "start.pt")]
+    )
+    tuned = torch.load(tmp_path / "run" / "checkpoint.pt", weights_only=False)["model"]
+    for name, value in start.state_dict().items():
+        if value.is_floating_point() and "running" not in name:  # batch-norm statistics move in one step
+            torch.testing.assert_close(tuned[name], value, atol=1e-6, rtol=0, msg=name)
