@@ -1,8 +1,14 @@
-"""Shared test fixtures: the real scans, the shipped model, and a tiny ONNX model for the service."""
+"""Shared test fixtures (the real scans, the shipped model, a tiny ONNX model for the service) and
+plain helpers the test modules import: free_port, asgi_scope, service_process."""
 
 import asyncio
+import os
+import socket
+import subprocess
+import sys
 import threading
-from contextlib import asynccontextmanager
+import time
+from contextlib import asynccontextmanager, contextmanager
 from pathlib import Path
 
 import numpy as np
@@ -156,3 +162,61 @@ def serve():
                 yield app, client
 
     return running
+
+
+# ---------------------------------------------------------------- plain helpers (import from conftest)
+
+
+def free_port() -> int:
+    with socket.socket() as probe:
+        probe.bind(("127.0.0.1", 0))
+        return probe.getsockname()[1]
+
+
+def asgi_scope(path: str, headers: dict[str, str], method: str = "POST") -> dict:
+    return {
+        "type": "http",
+        "asgi": {"version": "3.0"},
+        "http_version": "1.1",
+        "method": method,
+        "scheme": "http",
+        "path": path,
+        "raw_path": path.encode(),
+        "query_string": b"",
+        "root_path": "",
+        "headers": [(key.lower().encode(), value.encode()) for key, value in headers.items()],
+        "client": ("127.0.0.1", 50000),
+        "server": ("testserver", 80),
+    }
+
+
+@contextmanager
+def service_process(tmp_path: Path, model: Path, **settings: str):
+    """A real `python -m service` on a free loopback port, awaited until ready; yields (process,
+    url, log path) and stops it at the end."""
+    import httpx
+
+    port = free_port()
+    log = tmp_path / f"service-{port}.log"
+    env = {**os.environ, "PYTHONPATH": str(REPO), **{f"IFNET_{key.upper()}": value for key, value in settings.items()}}
+    command = [sys.executable, "-m", "service", "--port", str(port), "--model-path", str(model)]
+    with log.open("w") as output:
+        process = subprocess.Popen(command, env=env, stdout=output, stderr=subprocess.STDOUT)
+    url = f"http://127.0.0.1:{port}"
+    try:
+        for _ in range(600):  # hang guard: up to a minute for imports, model load and warm-up
+            if process.poll() is not None:
+                raise AssertionError(f"service exited with {process.returncode}:\n{log.read_text()}")
+            try:
+                if httpx.get(f"{url}/ready", timeout=1).status_code == 200:
+                    break
+            except httpx.TransportError:
+                pass
+            time.sleep(0.1)
+        else:
+            raise AssertionError(f"service never became ready:\n{log.read_text()}")
+        yield process, url, log
+    finally:
+        if process.poll() is None:
+            process.terminate()
+            process.wait(timeout=60)

@@ -15,12 +15,12 @@ import subprocess
 import sys
 import threading
 import time
-from contextlib import contextmanager
 from pathlib import Path
 
 import httpx
 import numpy as np
 import pytest
+from conftest import asgi_scope, free_port, service_process
 
 from service.batcher import MicroBatcher, RequestTimeoutError
 from service.engine import OnnxEngine
@@ -28,12 +28,6 @@ from service.settings import Settings
 
 REPO = Path(__file__).resolve().parents[1]
 JSON = {"content-type": "application/json"}
-
-
-def free_port() -> int:
-    with socket.socket() as probe:
-        probe.bind(("127.0.0.1", 0))
-        return probe.getsockname()[1]
 
 
 def accepts_connections(port: int) -> bool:
@@ -206,20 +200,7 @@ async def test_a_client_leaving_while_its_batch_runs_leaves_no_stuck_work(serve,
         async def send(message):
             sent.append(message)
 
-        scope = {
-            "type": "http",
-            "asgi": {"version": "3.0"},
-            "http_version": "1.1",
-            "method": "POST",
-            "scheme": "http",
-            "path": "/register",
-            "raw_path": b"/register",
-            "query_string": b"",
-            "root_path": "",
-            "headers": [(b"content-type", b"application/json"), (b"content-length", str(len(body)).encode())],
-            "client": ("127.0.0.1", 50001),
-            "server": ("testserver", 80),
-        }
+        scope = asgi_scope("/register", {"content-type": "application/json", "content-length": str(len(body))})
         leaving = asyncio.ensure_future(app(scope, receive, send))
         staying = asyncio.ensure_future(client.post("/register", content=payload(2), headers=JSON))
         await wait_until(lambda: state.batcher.queue_depth == 2, "two pairs queued")
@@ -239,37 +220,6 @@ async def test_a_client_leaving_while_its_batch_runs_leaves_no_stuck_work(serve,
     assert health["in_flight"] == 0 and health["queue_depth"] == 0
 
 
-@contextmanager
-def running_service(tmp_path: Path, model: Path, **settings: str):
-    port = free_port()
-    log = tmp_path / "service.log"
-    env = {**os.environ, "PYTHONPATH": str(REPO), **{f"IFNET_{k.upper()}": v for k, v in settings.items()}}
-    with log.open("w") as output:
-        process = subprocess.Popen(
-            [sys.executable, "-m", "service", "--port", str(port), "--model-path", str(model)],
-            env=env,
-            stdout=output,
-            stderr=subprocess.STDOUT,
-        )
-    url = f"http://127.0.0.1:{port}"
-    try:
-        for _ in range(600):  # hang guard
-            if process.poll() is not None:
-                raise AssertionError(f"service exited with {process.returncode}:\n{log.read_text()}")
-            try:
-                if httpx.get(f"{url}/ready", timeout=1).status_code == 200:
-                    break
-            except httpx.TransportError:
-                pass
-            time.sleep(0.1)
-        else:
-            raise AssertionError(f"service never became ready:\n{log.read_text()}")
-        yield port, url, log
-    finally:
-        process.terminate()
-        process.wait(timeout=60)
-
-
 def raw_request(port: int, body: bytes, send_bytes: int, wait_s: float = 0.0) -> None:
     """Send the headers and the first `send_bytes` of the body, optionally wait, then vanish."""
     head = (
@@ -285,7 +235,8 @@ def raw_request(port: int, body: bytes, send_bytes: int, wait_s: float = 0.0) ->
 def test_a_real_server_forgets_clients_that_vanish(tmp_path, tiny_model):
     """uvicorn on loopback: clients that reset mid-upload or while their pair is processed."""
     heavy = payload(5, count=12_000, max_points=1024)  # farthest-point sampling keeps it busy for a while
-    with running_service(tmp_path, tiny_model, max_network_points="1024") as (port, url, log):
+    with service_process(tmp_path, tiny_model, max_network_points="1024") as (_, url, log):
+        port = httpx.URL(url).port
         for index in range(3):
             raw_request(port, heavy, send_bytes=len(heavy) // 2)  # mid-upload
             raw_request(port, heavy, send_bytes=len(heavy), wait_s=0.1 * index)  # while it is processed

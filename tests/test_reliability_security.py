@@ -22,6 +22,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import asgi_scope
 
 import service
 from service.settings import Settings
@@ -198,23 +199,6 @@ async def test_pickled_uploads_are_refused_without_unpickling(serve, tiny_model,
 
 
 # ---------------------------------------------------------------- raw ASGI helpers
-
-
-def asgi_scope(path: str, headers: dict[str, str], method: str = "POST") -> dict:
-    return {
-        "type": "http",
-        "asgi": {"version": "3.0"},
-        "http_version": "1.1",
-        "method": method,
-        "scheme": "http",
-        "path": path,
-        "raw_path": path.encode(),
-        "query_string": b"",
-        "root_path": "",
-        "headers": [(key.lower().encode(), value.encode()) for key, value in headers.items()],
-        "client": ("127.0.0.1", 50000),
-        "server": ("testserver", 80),
-    }
 
 
 async def call_asgi(app, scope: dict, chunks: list[bytes]) -> tuple[int, dict, list[int]]:

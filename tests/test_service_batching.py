@@ -11,6 +11,7 @@ import threading
 
 import numpy as np
 import pytest
+from conftest import asgi_scope
 from prometheus_client.parser import text_string_to_metric_families
 
 from service.batcher import InferenceError, MicroBatcher, QueueFullError, ShuttingDownError
@@ -189,20 +190,7 @@ async def test_a_client_that_disconnects_does_not_poison_the_batch(serve, tiny_m
         async def send(message):
             sent.append(message)
 
-        scope = {
-            "type": "http",
-            "asgi": {"version": "3.0"},
-            "http_version": "1.1",
-            "method": "POST",
-            "scheme": "http",
-            "path": "/register",
-            "raw_path": b"/register",
-            "query_string": b"",
-            "root_path": "",
-            "headers": [(b"content-type", b"application/json"), (b"content-length", str(len(body)).encode())],
-            "client": ("127.0.0.1", 50000),
-            "server": ("testserver", 80),
-        }
+        scope = asgi_scope("/register", {"content-type": "application/json", "content-length": str(len(body))})
         leaving = asyncio.ensure_future(app(scope, receive, send))
         queued_behind = asyncio.ensure_future(client.post("/register", json=payload(2)))
         await wait_until(lambda: batcher.queue_depth == 2, "two pairs queued")

@@ -4,56 +4,21 @@ client against it, graceful shutdown on SIGTERM, and a clear failure without a m
 import json
 import os
 import signal
-import socket
 import subprocess
 import sys
 import time
 from concurrent.futures import ThreadPoolExecutor
-from contextlib import contextmanager
 from pathlib import Path
 
 import httpx
 import numpy as np
 import pytest
+from conftest import free_port, service_process
 
 from service.client import RegistrationClient
 from service.formats import read_cloud_file, write_ply
 
 REPO = Path(__file__).resolve().parents[1]
-
-
-def free_port() -> int:
-    with socket.socket() as probe:
-        probe.bind(("127.0.0.1", 0))
-        return probe.getsockname()[1]
-
-
-@contextmanager
-def service_process(tmp_path: Path, model: Path, **settings: str):
-    port = free_port()
-    log = tmp_path / f"service-{port}.log"
-    env = {**os.environ, "PYTHONPATH": str(REPO), **{f"IFNET_{key.upper()}": value for key, value in settings.items()}}
-    command = [sys.executable, "-m", "service", "--port", str(port), "--model-path", str(model)]
-    with log.open("w") as output:
-        process = subprocess.Popen(command, env=env, stdout=output, stderr=subprocess.STDOUT)
-    url = f"http://127.0.0.1:{port}"
-    try:
-        for _ in range(600):  # hang guard: up to a minute for imports, model load and warm-up
-            if process.poll() is not None:
-                raise AssertionError(f"service exited with {process.returncode}:\n{log.read_text()}")
-            try:
-                if httpx.get(f"{url}/ready", timeout=1).status_code == 200:
-                    break
-            except httpx.TransportError:
-                pass
-            time.sleep(0.1)
-        else:
-            raise AssertionError(f"service never became ready:\n{log.read_text()}")
-        yield process, url, log
-    finally:
-        if process.poll() is None:
-            process.terminate()
-            process.wait(timeout=60)
 
 
 def run_client(*args: str) -> subprocess.CompletedProcess:
