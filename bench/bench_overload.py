@@ -5,7 +5,7 @@
    the pairs/s it sustains (or pass `--capacity`).
 2. Overload: Poisson arrivals at `--factor` x capacity for `--duration` s (open loop: arrivals do
    not wait for answers), model-sized JSON pairs. Every request is followed to its answer.
-   Checked: only 200 and the declared 429 (queue full) / 503 (stopping) answers, no transport
+   Checked: only 200 and the declared 429 (busy or queue full) / 503 (stopping) answers, no transport
    errors or client timeouts (no request lost), p99 of accepted requests below the request
    timeout, resident memory flat, `/ready` 200 and the queue empty again right after.
 3. SIGTERM under load: closed-loop clients keep sending; SIGTERM arrives mid-run. Every request

@@ -84,6 +84,7 @@ class Outcome:
     latency_s: float
     status: int  # 0 for a transport error
     error: str = ""  # exception type for transport errors
+    retry_after_s: float = 0.0  # the Retry-After header of a 429 or 503
 
 
 @dataclass
@@ -113,15 +114,17 @@ async def _send(client: httpx.AsyncClient, body: Body, started: float, path: str
     try:
         response = await client.post(path, content=body.content, headers=body.headers)
         status, error = response.status_code, ""
+        retry_after = float(response.headers.get("retry-after", 0))
     except httpx.HTTPError as exc:
-        status, error = 0, type(exc).__name__
-    return Outcome(sent - started, time.perf_counter() - sent, status, error)
+        status, error, retry_after = 0, type(exc).__name__, 0.0
+    return Outcome(sent - started, time.perf_counter() - sent, status, error, retry_after)
 
 
 async def closed_loop(
     url: str, bodies: list[Body], clients: int, duration_s: float, timeout_s: float = 120.0, path: str = "/register"
 ) -> Run:
-    """`clients` clients, each sending its next request as soon as the last one is answered."""
+    """`clients` clients, each sending its next request as soon as the last one is answered, or
+    after the Retry-After seconds of a refusal (as a well-behaved client would)."""
     run = Run()
     limits = httpx.Limits(max_connections=clients, max_keepalive_connections=clients)
     async with httpx.AsyncClient(base_url=url, limits=limits, timeout=timeout_s, trust_env=False) as client:
@@ -131,8 +134,11 @@ async def closed_loop(
         async def worker(index: int) -> None:
             turn = index
             while time.perf_counter() < deadline:
-                run.outcomes.append(await _send(client, bodies[turn % len(bodies)], started, path))
+                outcome = await _send(client, bodies[turn % len(bodies)], started, path)
+                run.outcomes.append(outcome)
                 turn += clients
+                if outcome.retry_after_s:
+                    await asyncio.sleep(min(outcome.retry_after_s, max(0.0, deadline - time.perf_counter())))
 
         await asyncio.gather(*(worker(i) for i in range(clients)))
         run.seconds = time.perf_counter() - started

@@ -50,7 +50,7 @@ def verdict(value: float | None, goal: float, lower_is_better: bool) -> str:
         return "met"
     if lower_is_better:
         return f"missed: {value / goal:.2f}x the limit ({value - goal:,.0f} over)"
-    return f"missed: {value / goal:.0%} of the goal"
+    return f"missed: {value:.4g} is {value / goal:.1%} of the goal"
 
 
 # ---------------------------------------------------------------- plots
@@ -243,7 +243,7 @@ def service_section(service: dict | None, plots: Path, lines: list[str]) -> None
     lines += ["![service throughput and latency](benchmarks/service.png)", ""]
 
 
-METHOD_ORDER = ["IFNet", "IFNet + ICP", "Open3D ICP (identity init)", "Open3D FPFH + RANSAC + ICP"]
+METHOD_ORDER = ["IFNet", "IFNet + ICP", "Open3D ICP (identity init)", "FPFH + RANSAC (Open3D) + ICP"]
 
 
 def accuracy_section(evaluation: dict | None, source: Path, lines: list[str]) -> None:
@@ -439,8 +439,9 @@ RELIABILITY = [
     ),
     ("Overload at 2x capacity for 60 s", "`bench/bench_overload.py`, section above"),
     (
-        "Queue full answers 429 with Retry-After",
-        "`tests/test_service_batching.py::test_a_full_queue_answers_429_with_retry_after`",
+        "Queue full, or too many requests in progress (checked before the body is read): 429 with Retry-After",
+        "`tests/test_service_batching.py::test_a_full_queue_answers_429_with_retry_after`, "
+        "`tests/test_service_batching.py::test_requests_beyond_the_in_flight_limit_get_429_before_their_body_is_read`",
     ),
     (
         "Missing model file: startup fails clearly",

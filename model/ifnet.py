@@ -61,7 +61,7 @@ class IFNetConfig:
 PRESETS: dict[str, IFNetConfig] = {
     # The paper's sizes and the official code's hyper-parameters.
     "paper": IFNetConfig(),
-    # Smaller widths and attention neighbourhoods for CPU serving; see docs/presets.md.
+    # Smaller widths and attention neighbourhoods for CPU serving; timings in the README's preset table.
     "small": IFNetConfig(emb_dims=128, attention_hidden=128, attention_k=8),
     "fast": IFNetConfig(emb_dims=64, attention_hidden=64, attention_k=8, pos_hidden=32),
 }

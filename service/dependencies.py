@@ -1,6 +1,8 @@
-"""FastAPI dependencies: the shared service state (engine, batcher, settings) and the API key check."""
+"""FastAPI dependencies: the shared service state (engine, batcher, settings), admission control
+and the API key check."""
 
 import secrets
+from collections.abc import AsyncIterator
 from typing import Annotated
 
 from fastapi import Depends, Header, HTTPException, Request
@@ -17,6 +19,25 @@ def get_loaded_service(service: Annotated[ServiceState, Depends(get_service)]) -
     if service.engine is None or service.batcher is None:
         raise HTTPException(503, "the model is not loaded yet; retry shortly", headers={"Retry-After": "1"})
     return service
+
+
+async def admit(service: Annotated[ServiceState, Depends(get_loaded_service)]) -> AsyncIterator[ServiceState]:
+    """Admits a registration request before its body is read, or answers 429 when
+    `max_in_flight` requests are already being read, parsed, queued or run."""
+    limit = service.settings.max_in_flight
+    if service.in_flight >= limit:
+        assert service.batcher is not None
+        raise HTTPException(
+            429,
+            f"the service is busy: {limit} registration requests are already in progress; "
+            "retry after the Retry-After header's seconds",
+            headers={"Retry-After": str(service.batcher.retry_after_s())},
+        )
+    service.in_flight += 1
+    try:
+        yield service
+    finally:
+        service.in_flight -= 1
 
 
 def require_api_key(
@@ -40,3 +61,6 @@ def require_api_key(
 
 Service = Annotated[ServiceState, Depends(get_service)]
 LoadedService = Annotated[ServiceState, Depends(get_loaded_service)]
+# Ends before the response is sent, so a client that sends its next request on receiving an
+# answer is not refused for a slot its last request still held.
+AdmittedService = Annotated[ServiceState, Depends(admit, scope="function")]

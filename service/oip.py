@@ -12,7 +12,7 @@ from fastapi import APIRouter, Depends, HTTPException, Path, Request
 from fastapi.responses import JSONResponse
 
 from service import __version__
-from service.dependencies import LoadedService, Service, require_api_key
+from service.dependencies import AdmittedService, LoadedService, Service, require_api_key
 from service.registration import InvalidInput
 from service.schemas import (
     RegistrationOptions,
@@ -123,7 +123,7 @@ def _clouds(tensor: V2Tensor) -> np.ndarray:
     dependencies=[Depends(require_api_key)],  # checked before the body is read
     summary="Register point clouds (v2 inference)",
 )
-async def infer(model_name: ModelName, request: Request, service: LoadedService) -> V2InferResponse:
+async def infer(model_name: ModelName, request: Request, service: AdmittedService) -> V2InferResponse:
     """Same pipeline and batcher as /register; `parameters` may set `max_points`, `sampling` and `seed`."""
     _check_name(model_name, service)
     async with service.deadline():

@@ -7,7 +7,7 @@ from fastapi import APIRouter, Depends, Query, Request, Response
 from fastapi.responses import JSONResponse
 
 from model.geometry import to_matrix
-from service.dependencies import LoadedService, Service, require_api_key
+from service.dependencies import AdmittedService, Service, require_api_key
 from service.registration import RegistrationResult
 from service.schemas import (
     EXAMPLE_SOURCE,
@@ -72,7 +72,10 @@ _ERRORS = {
     413: {"model": ErrorResponse, "description": "Body larger than the configured limit."},
     415: {"model": ErrorResponse, "description": "Content type or file format not accepted."},
     422: {"model": ErrorResponse, "description": "A field is invalid; `detail` names it and the problem."},
-    429: {"model": ErrorResponse, "description": "Queue full; retry after the `Retry-After` header's seconds."},
+    429: {
+        "model": ErrorResponse,
+        "description": "Too many requests in progress, or the queue is full; retry after `Retry-After` seconds.",
+    },
     503: {"model": ErrorResponse, "description": "Model not loaded yet, or shutting down."},
     504: {"model": ErrorResponse, "description": "No model result within the request timeout."},
 }
@@ -123,7 +126,7 @@ def to_response(result: RegistrationResult, model: ModelDescription, started: fl
 )
 async def register(
     request: Request,
-    service: LoadedService,
+    service: AdmittedService,
     options: Annotated[
         str | None,
         Query(

@@ -288,7 +288,7 @@ class HealthResponse(BaseModel):
     ready: bool
     uptime_s: float
     queue_depth: int = Field(description="Pairs waiting for the model.")
-    in_flight: int = Field(description="Registration requests being processed.")
+    in_flight: int = Field(description="Registration requests admitted and not yet answered (at most max_in_flight).")
     latency: LatencySummary
 
 

@@ -24,7 +24,15 @@ class Settings(BaseSettings):
     max_batch_delay_ms: float = Field(
         0.0, ge=0.0, le=1000.0, description="How long a batch waits to fill up; 0 takes whatever is waiting."
     )
-    max_queue_size: int = Field(64, ge=1, description="Requests that may wait for the model; more get 429.")
+    # 16 keeps the slowest admitted request (a 100k-point scan pair at ~1 pair/s on 2 CPUs) inside
+    # the default timeout, and the memory of the bodies in progress well under 1 GB.
+    max_in_flight: int = Field(
+        16,
+        ge=1,
+        description="Registration requests admitted at once (reading, parsing, queued or running); more get 429 "
+        "before their body is read, which bounds the memory and CPU that request bodies can take.",
+    )
+    max_queue_size: int = Field(64, ge=1, description="Pairs that may wait for the model; more get 429.")
     request_timeout_s: float = Field(
         30.0,
         gt=0.0,

@@ -41,7 +41,7 @@ class ServiceState:
         self.ready = asyncio.Event()
         self.warmup_error: str | None = None
         self.accepting = True  # False once shutdown has begun
-        self.in_flight = 0
+        self.in_flight = 0  # registration requests admitted and not yet answered (see dependencies.admit)
 
     @property
     def model(self) -> ModelInfo:
@@ -122,11 +122,7 @@ class ServiceState:
                     task.cancel()
                 raise
 
-        self.in_flight += 1
-        try:
-            return await cancel_on_disconnect(request, all_pairs())
-        finally:
-            self.in_flight -= 1
+        return await cancel_on_disconnect(request, all_pairs())
 
 
 async def _disconnected(request: Request) -> None:

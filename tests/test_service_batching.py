@@ -149,6 +149,29 @@ async def test_a_full_queue_answers_429_with_retry_after(serve, tiny_model, gate
     assert metrics["ifnet_http_requests_total{method=POST,route=/register,status=429}"] == 1
 
 
+async def test_requests_beyond_the_in_flight_limit_get_429_before_their_body_is_read(serve, tiny_model, gated_engine):
+    engine = gated_engine(OnnxEngine(tiny_model))
+    async with serve(settings_for(tiny_model, max_in_flight=2), engine=engine) as (app, client):
+        service = app.state.service
+        running = asyncio.ensure_future(client.post("/register", json=payload(0)))
+        await wait_until(lambda: engine.entered.is_set(), "first call at the gate")
+        queued = asyncio.ensure_future(client.post("/register", json=payload(1)))
+        await wait_until(lambda: service.batcher.queue_depth == 1, "second pair queued")
+        # Not JSON at all: a 429 rather than a 400 shows that the body was never read.
+        rejected = await client.post("/register", content=b"{not json", headers={"content-type": "application/json"})
+        v2_rejected = await client.post(f"/v2/models/{service.model.name}/infer", content=b"{not json")
+        engine.gate.set()
+        accepted = await asyncio.gather(running, queued)
+        after = await client.post("/register", json=payload(2))
+        health = (await client.get("/health")).json()
+    assert [r.status_code for r in (rejected, v2_rejected)] == [429, 429]
+    assert "2 registration requests are already in progress" in rejected.json()["detail"]
+    assert int(rejected.headers["retry-after"]) >= 1
+    assert [r.status_code for r in accepted] == [200, 200]
+    assert after.status_code == 200, after.text  # the slots were given back
+    assert health["in_flight"] == 0
+
+
 async def test_a_request_that_waits_too_long_gets_504_and_leaves_the_batch(serve, tiny_model, gated_engine):
     engine = gated_engine(OnnxEngine(tiny_model))
     async with serve(settings_for(tiny_model, request_timeout_s=1.0), engine=engine) as (app, client):

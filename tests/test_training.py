@@ -52,6 +52,29 @@ def test_pairs_are_seeded_by_index(shapes):
     assert not torch.equal(a[5]["rotation"], b[5]["rotation"])
 
 
+def test_mixed_protocols_give_both_kinds_of_pair(shapes):
+    """Clean sources are exact shape points; jittered ones are not. A mix yields both, by seed."""
+    pairs = RegistrationPairs(shapes, [Protocol(noise="clean"), Protocol(noise="jitter")], seed=5)
+    trees = [cKDTree(shape.astype(np.float64)) for shape in shapes]
+    jittered = [trees[i].query(pairs[i]["source"].numpy())[0].max() > 1e-5 for i in range(len(shapes))]
+    assert 0 < sum(jittered) < len(shapes), jittered
+    again = RegistrationPairs(shapes, [Protocol(noise="clean"), Protocol(noise="jitter")], seed=5)
+    assert torch.equal(pairs[3]["source"], again[3]["source"])
+
+
+@pytest.mark.parametrize("sigma", [0.002, 0.01])
+def test_jitter_moves_every_point_by_at_most_five_sigma(shapes, sigma):
+    pair = make_pair(shapes[2], Protocol(noise="jitter", jitter_sigma=sigma), np.random.default_rng(2))
+    offsets = cKDTree(shapes[2].astype(np.float64)).query(pair["source"])[0]
+    assert offsets.max() <= 5 * sigma * np.sqrt(3) + 1e-6
+    assert np.median(offsets) > 0.5 * sigma  # every point moved, not just a few
+
+
+def test_protocols_of_different_cloud_sizes_cannot_be_mixed(shapes):
+    with pytest.raises(ValueError, match="one size"):
+        RegistrationPairs(shapes, [Protocol(noise="clean"), Protocol(noise="outliers")])
+
+
 @pytest.mark.slow
 def test_tiny_training_run_checkpoints_and_resumes(tmp_path, shapes):
     np.savez(tmp_path / "modelnet10_train.npz", points=shapes)
@@ -83,6 +106,9 @@ def test_tiny_training_run_checkpoints_and_resumes(tmp_path, shapes):
     assert changed, "resumed training did not update the weights"
     rows = list(csv.DictReader((tmp_path / "run" / "log.csv").open()))
     assert [int(r["step"]) for r in rows] == [1, 2, 3]
+    validated = [r for r in rows if r["val_rotation_deg"]]
+    assert [int(r["step"]) for r in validated] == [2, 3]  # every checkpoint, clean and jittered
+    assert all(float(r["val_jitter_rotation_deg"]) >= 0 for r in validated)
     seconds = [float(r["seconds"]) for r in rows]
     assert seconds == sorted(seconds), "the training clock must continue across a resume"
     assert (tmp_path / "run" / "losses.png").stat().st_size > 0
@@ -162,3 +188,23 @@ def test_fine_tuning_starts_from_the_given_weights_on_noisy_pairs(tmp_path, shap
     for name, value in start.state_dict().items():
         if value.is_floating_point() and "running" not in name:  # batch-norm statistics move in one step
             torch.testing.assert_close(tuned[name], value, atol=1e-6, rtol=0, msg=name)
+
+
+def test_evaluation_reports_the_network_and_its_icp_refinement(tmp_path, shapes):
+    from export.onnx_export import DEFAULT_OUTPUT
+    from model.training.evaluate import main as evaluate_main
+
+    np.savez(tmp_path / "modelnet10_test.npz", points=shapes[:3])
+    out = tmp_path / "eval"
+    args = ["--model", str(DEFAULT_OUTPUT), "--data-dir", str(tmp_path), "--out", str(out), "--no-baselines"]
+    results = evaluate_main([*args, "--sets", "same", "jitter", "--jitter-sigma", "0.002"])
+
+    for set_name in ("same", "jitter"):
+        network, refined = results[set_name]["IFNet"], results[set_name]["IFNet + ICP"]
+        assert network["pairs"] == refined["pairs"] == 3
+        # The refinement starts from the network's estimate and adds its own time to it.
+        assert refined["ms_per_pair"] >= network["ms_per_pair"] > 0
+        assert (out / f"{set_name}_rotation_errors.png").stat().st_size > 0
+    assert results["same"]["IFNet + ICP"]["mae_r"] < 1.0
+    report = (out / "evaluation.md").read_text()
+    assert "--jitter-sigma 0.002" in report and "### jitter (3 pairs)" in report

@@ -4,9 +4,11 @@ Each pair: a shape of 1,024 points, a rotation from three Euler angles uniform i
 translation uniform in [-0.5, 0.5] per axis; the source and the moved copy are each cropped to
 the 768 points nearest to one shared far point (partial-to-partial). Noise variants: "outliers"
 (100 extra points copied from the cloud, offset by N(0, 0.5^2) clipped to [-1, 1]) and "jitter"
-(Gaussian noise sigma 0.01 clipped to 0.05 on every point). Evaluation pairs are seeded by index.
+(Gaussian noise sigma 0.01 clipped to 0.05 on every point, both clouds independently). Evaluation
+pairs are seeded by index.
 """
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -19,6 +21,7 @@ from model.geometry import apply_transform, crop_nearest, random_rotation
 DEFAULT_DATA_DIR = Path(__file__).resolve().parents[2].parent / "shared" / "data"
 SPLIT_FILES = {"train": "modelnet10_train.npz", "same": "modelnet10_test.npz", "unseen": "modelnet40_unseen.npz"}
 NOISE_KINDS = ("clean", "outliers", "jitter")
+OUTLIER_COUNT = 100
 
 
 def load_split(split: str, data_dir: Path | str | None = None) -> np.ndarray:
@@ -42,19 +45,25 @@ class Protocol:
     max_angle_deg: float = 45.0
     max_translation: float = 0.5
     noise: str = "clean"
+    jitter_sigma: float = 0.01  # of the "jitter" noise, clipped to 5 sigma
 
     def __post_init__(self):
         if self.noise not in NOISE_KINDS:
             raise ValueError(f"noise must be one of {NOISE_KINDS}, got {self.noise!r}")
 
+    @property
+    def cloud_points(self) -> int:
+        """Points per cloud of a pair built by this protocol."""
+        return self.crop_points + (OUTLIER_COUNT if self.noise == "outliers" else 0)
 
-def add_outliers(points: np.ndarray, rng: np.random.Generator, count: int = 100) -> np.ndarray:
+
+def add_outliers(points: np.ndarray, rng: np.random.Generator, count: int = OUTLIER_COUNT) -> np.ndarray:
     copies = points[rng.integers(0, len(points), size=count)]
     return np.concatenate([points, copies + np.clip(rng.normal(0.0, 0.5, copies.shape), -1.0, 1.0)])
 
 
-def add_jitter(points: np.ndarray, rng: np.random.Generator) -> np.ndarray:
-    return points + np.clip(rng.normal(0.0, 0.01, points.shape), -0.05, 0.05)
+def add_jitter(points: np.ndarray, rng: np.random.Generator, sigma: float = 0.01) -> np.ndarray:
+    return points + np.clip(rng.normal(0.0, sigma, points.shape), -5 * sigma, 5 * sigma)
 
 
 def make_pair(shape: np.ndarray, protocol: Protocol, rng: np.random.Generator) -> dict[str, np.ndarray]:
@@ -71,7 +80,8 @@ def make_pair(shape: np.ndarray, protocol: Protocol, rng: np.random.Generator) -
     if protocol.noise == "outliers":
         source, target = add_outliers(source, rng), add_outliers(target, rng)
     elif protocol.noise == "jitter":
-        source, target = add_jitter(source, rng), add_jitter(target, rng)
+        sigma = protocol.jitter_sigma
+        source, target = add_jitter(source, rng, sigma), add_jitter(target, rng, sigma)
     return {
         "source": source.astype(np.float32),
         "target": target.astype(np.float32),
@@ -82,11 +92,17 @@ def make_pair(shape: np.ndarray, protocol: Protocol, rng: np.random.Generator) -
 
 class RegistrationPairs(Dataset):
     """Pairs built on the fly; pair i depends only on (seed, epoch, i), so evaluation sets are
-    identical across runs and workers, and training draws new motions each epoch (set `epoch`)."""
+    identical across runs and workers, and training draws new motions each epoch (set `epoch`).
 
-    def __init__(self, shapes: np.ndarray, protocol: Protocol = Protocol(), seed: int = 0):
+    Given several protocols, each pair draws one of them (e.g. clean and jitter pairs mixed for
+    training); they must give clouds of one size so that pairs batch together.
+    """
+
+    def __init__(self, shapes: np.ndarray, protocols: Protocol | Sequence[Protocol] = Protocol(), seed: int = 0):
         self.shapes = shapes
-        self.protocol = protocol
+        self.protocols = (protocols,) if isinstance(protocols, Protocol) else tuple(protocols)
+        if len({p.cloud_points for p in self.protocols}) != 1:
+            raise ValueError("protocols to mix must give clouds of one size (outliers add points: train on them alone)")
         self.seed = seed
         self.epoch = 0
 
@@ -95,7 +111,8 @@ class RegistrationPairs(Dataset):
 
     def __getitem__(self, index: int) -> dict[str, torch.Tensor]:
         rng = np.random.default_rng((self.seed, self.epoch, index))
-        pair = make_pair(self.shapes[index], self.protocol, rng)
+        protocol = self.protocols[rng.integers(len(self.protocols))] if len(self.protocols) > 1 else self.protocols[0]
+        pair = make_pair(self.shapes[index], protocol, rng)
         return {key: torch.from_numpy(value) for key, value in pair.items()}
 
 

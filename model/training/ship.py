@@ -76,7 +76,7 @@ def main(argv: list[str] | None = None) -> None:
             for set_name, rows in results.items()
         }
     record_path.write_text(json.dumps(record, indent=2) + "\n")
-    print(f"wrote {args.weights} and {record_path}")
+    print(f"wrote {args.weights} and {record_path}" if args.checkpoint else f"wrote {record_path}")
 
 
 if __name__ == "__main__":

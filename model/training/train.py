@@ -32,6 +32,7 @@ LOG_FIELDS = [
     "neighbourhood_consistency",
     "pseudo_consistency",
     "val_rotation_deg",
+    "val_jitter_rotation_deg",
     "seconds",
 ]
 
@@ -53,7 +54,11 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     parser.add_argument("--threads", type=int, default=0, help="torch threads (0: torch's default)")
     parser.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
     parser.add_argument(
-        "--noise", choices=NOISE_KINDS, default="clean", help="noise of the training pairs (validation stays clean)"
+        "--noise",
+        nargs="+",
+        choices=NOISE_KINDS,
+        default=["clean"],
+        help="noise of the training pairs; several kinds are mixed pair by pair (e.g. --noise clean jitter)",
     )
     parser.add_argument("--init-weights", type=Path, help="start from these weights (fine-tuning) instead of random")
     return parser.parse_args(argv)
@@ -121,10 +126,12 @@ def plot_losses(log_path: Path, png_path: Path) -> None:
         ax.set_title(key)
         ax.set_xlabel("step")
         ax.set_yscale("log")
-    val = [(s, float(r["val_rotation_deg"])) for s, r in zip(steps, rows) if r["val_rotation_deg"]]
-    if val:
-        axes[4].plot(*zip(*val), marker="o")
-        axes[4].set_yscale("log")
+    for column, label in (("val_rotation_deg", "clean"), ("val_jitter_rotation_deg", "jittered")):
+        val = [(s, float(r[column])) for s, r in zip(steps, rows) if r.get(column)]
+        if val:
+            axes[4].plot(*zip(*val), marker="o", label=label)
+    axes[4].set_yscale("log")
+    axes[4].legend()
     axes[4].set_title("validation rotation error (deg)")
     axes[4].set_xlabel("step")
     fig.tight_layout()
@@ -143,8 +150,13 @@ def train(args: argparse.Namespace) -> Path:
     val_shapes, train_shapes = shapes[-args.val_shapes :], shapes[: -args.val_shapes]
     if args.max_shapes:
         train_shapes = train_shapes[: args.max_shapes]
-    train_pairs = RegistrationPairs(train_shapes, Protocol(noise=args.noise), seed=args.seed)
-    val_pairs = RegistrationPairs(val_shapes, Protocol(), seed=args.seed + 1)
+    train_pairs = RegistrationPairs(train_shapes, [Protocol(noise=kind) for kind in args.noise], seed=args.seed)
+    # Validated on clean and on jittered pairs: a network can match clean pairs by their exact
+    # shared points and still fail as soon as the two clouds are sampled apart.
+    validation = {
+        column: RegistrationPairs(val_shapes, Protocol(noise=noise), seed=args.seed + 1)
+        for column, noise in (("val_rotation_deg", "clean"), ("val_jitter_rotation_deg", "jitter"))
+    }
 
     config: IFNetConfig = preset(args.preset)
     model = IFNet(config).to(args.device)
@@ -205,12 +217,16 @@ def train(args: argparse.Namespace) -> Path:
                     "epoch": f"{step / steps_per_epoch:.3f}",
                     "lr": f"{optimizer.param_groups[0]['lr']:.3g}",
                     "seconds": f"{time.time() - started:.1f}",
-                    "val_rotation_deg": "",
+                    **dict.fromkeys(validation, ""),
                     **values,
                 }
                 if step % args.checkpoint_every == 0 or step == total_steps:
-                    row["val_rotation_deg"] = f"{validate(model, val_pairs, args.device, args.batch_size):.4f}"
-                    progress.write(f"step {step}: validation rotation error {row['val_rotation_deg']} deg")
+                    for column, pairs in validation.items():
+                        row[column] = f"{validate(model, pairs, args.device, args.batch_size):.4f}"
+                    progress.write(
+                        f"step {step}: validation rotation error {row['val_rotation_deg']} deg clean, "
+                        f"{row['val_jitter_rotation_deg']} deg jittered"
+                    )
                     save_checkpoint(checkpoint_path, model, optimizer, step, args)
                 log.writerow(row)
                 log_file.flush()
