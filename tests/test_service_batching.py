@@ -60,7 +60,7 @@ def metric_samples(text: str) -> dict[str, float]:
 
 async def test_32_concurrent_requests_are_batched_and_each_gets_its_own_answer(serve, tiny_model, gated_engine):
     engine = gated_engine(OnnxEngine(tiny_model))
-    async with serve(settings_for(tiny_model, max_queue_size=64), engine=engine) as (app, client):
+    async with serve(settings_for(tiny_model, max_queue_size=64, max_in_flight=32), engine=engine) as (app, client):
         batcher = app.state.service.batcher
         requests = [asyncio.ensure_future(client.post("/register", json=payload(seed))) for seed in range(32)]
         # The first batch holds the worker at the gate; all other pairs queue up behind it.
