@@ -4,7 +4,6 @@ import asyncio
 import time
 from collections.abc import AsyncIterator, Awaitable
 from contextlib import asynccontextmanager
-from functools import partial
 from typing import TypeVar
 
 import numpy as np
@@ -103,7 +102,9 @@ class ServiceState:
         """
         assert self.batcher is not None
         params = self.params(options)
-        predict = partial(self.batcher.submit, timeout_s=self.settings.request_timeout_s)
+        # No wait limit of the batcher's own: the request's deadline (see `deadline`) bounds the
+        # whole request, and cancelling it drops the pair from the queue.
+        predict = self.batcher.submit
 
         async def one(index: int, source: np.ndarray, target: np.ndarray) -> RegistrationResult:
             try:
