@@ -208,3 +208,12 @@ def test_evaluation_reports_the_network_and_its_icp_refinement(tmp_path, shapes)
     assert results["same"]["IFNet + ICP"]["mae_r"] < 1.0
     report = (out / "evaluation.md").read_text()
     assert "--jitter-sigma 0.002" in report and "### jitter (3 pairs)" in report
+
+
+def test_config_overrides_accept_integer_fields_only():
+    from model.training.train import parse_overrides
+
+    assert parse_overrides(["edgeconv_k=16", "attention_k=4"]) == {"edgeconv_k": 16, "attention_k": 4}
+    for bad in ("edgeconv_k=1.5", "bogus=3", "edgeconv_k"):
+        with pytest.raises(SystemExit, match="FIELD=INT"):
+            parse_overrides([bad])

@@ -8,6 +8,7 @@ losses, and losses.png. Rerunning the same command resumes from the checkpoint.
 
 import argparse
 import csv
+import dataclasses
 import json
 import math
 import time
@@ -40,6 +41,13 @@ LOG_FIELDS = [
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--preset", default="fast", choices=sorted(PRESETS))
+    parser.add_argument(
+        "--override",
+        nargs="+",
+        default=[],
+        metavar="FIELD=INT",
+        help="change integer fields of the preset's config, e.g. --override edgeconv_k=16 (for experiments)",
+    )
     parser.add_argument("--epochs", type=float, default=2.0, help="may be fractional")
     parser.add_argument("--batch-size", type=int, default=4)
     parser.add_argument("--lr", type=float, default=1e-3, help="Adam learning rate (the paper's 1e-3)")
@@ -62,6 +70,17 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     )
     parser.add_argument("--init-weights", type=Path, help="start from these weights (fine-tuning) instead of random")
     return parser.parse_args(argv)
+
+
+def parse_overrides(items: list[str]) -> dict[str, int]:
+    overrides = {}
+    for item in items:
+        field, _, value = item.partition("=")
+        integer_fields = [f.name for f in dataclasses.fields(IFNetConfig) if f.type is int]
+        if field not in integer_fields or not value.lstrip("-").isdigit():
+            raise SystemExit(f"--override {item!r}: expected FIELD=INT with FIELD one of {integer_fields}")
+        overrides[field] = int(value)
+    return overrides
 
 
 def learning_rate(args: argparse.Namespace, step: int, total_steps: int) -> float:
@@ -158,7 +177,7 @@ def train(args: argparse.Namespace) -> Path:
         for column, noise in (("val_rotation_deg", "clean"), ("val_jitter_rotation_deg", "jitter"))
     }
 
-    config: IFNetConfig = preset(args.preset)
+    config: IFNetConfig = preset(args.preset, **parse_overrides(args.override))
     model = IFNet(config).to(args.device)
     optimizer = torch.optim.Adam(model.parameters(), lr=args.lr)
     step, seconds_before = 0, 0.0
