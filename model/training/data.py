@@ -111,6 +111,7 @@ class RegistrationPairs(Dataset):
 
     def __getitem__(self, index: int) -> dict[str, torch.Tensor]:
         rng = np.random.default_rng((self.seed, self.epoch, index))
+        # A single protocol draws nothing, so its pairs stay those of the seeded evaluation sets.
         protocol = self.protocols[rng.integers(len(self.protocols))] if len(self.protocols) > 1 else self.protocols[0]
         pair = make_pair(self.shapes[index], protocol, rng)
         return {key: torch.from_numpy(value) for key, value in pair.items()}

@@ -23,7 +23,7 @@ os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 import numpy as np  # noqa: E402
 
-from model.geometry import from_matrix, icp_refine, registration_errors, summarise_errors, to_matrix
+from model.geometry import from_matrix, icp_refine, registration_errors, summarise_errors
 from model.training.data import DEFAULT_DATA_DIR, Protocol, load_split, make_pair
 
 # Correspondence distance of every ICP here, in unit-sphere units: large enough to pull in a
@@ -96,7 +96,7 @@ def open3d_baselines() -> dict[str, Registration]:
             reg.TransformationEstimationPointToPoint(),
             reg.ICPConvergenceCriteria(max_iteration=50),
         )
-        return result.transformation
+        return from_matrix(np.asarray(result.transformation))
 
     def features(points: np.ndarray):
         pcd = cloud(points).voxel_down_sample(voxel)
@@ -118,18 +118,12 @@ def open3d_baselines() -> dict[str, Registration]:
             reg.RANSACConvergenceCriteria(RANSAC_ITERATIONS, RANSAC_CONFIDENCE),
         )
         # The same ICP as the "IFNet + ICP" row, so the two rows differ only in the coarse step.
-        rotation, translation, _ = icp_refine(source, target, *from_matrix(coarse.transformation), ICP_DISTANCE)
-        return to_matrix(rotation, translation)
-
-    def as_rt(fn):
-        def run(source: np.ndarray, target: np.ndarray):
-            transform = np.asarray(fn(source, target))
-            return transform[:3, :3], transform[:3, 3]
-
-        return run
+        coarse_rotation, coarse_translation = from_matrix(np.asarray(coarse.transformation))
+        rotation, translation, _ = icp_refine(source, target, coarse_rotation, coarse_translation, ICP_DISTANCE)
+        return rotation, translation
 
     o3d.utility.random.seed(0)
-    return {"Open3D ICP (identity init)": as_rt(icp), "FPFH + RANSAC (Open3D) + ICP": as_rt(fpfh_ransac_icp)}
+    return {"Open3D ICP (identity init)": icp, "FPFH + RANSAC (Open3D) + ICP": fpfh_ransac_icp}
 
 
 def evaluate_methods(

@@ -36,6 +36,9 @@ LOG_FIELDS = [
     "val_jitter_rotation_deg",
     "seconds",
 ]
+# Log column -> noise of its held-out pairs. Validated on clean and on jittered pairs: a network
+# can match clean pairs by their exact shared points and still fail once the clouds are sampled apart.
+VALIDATION_COLUMNS = {"val_rotation_deg": "clean", "val_jitter_rotation_deg": "jitter"}
 
 
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
@@ -73,10 +76,10 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
 
 
 def parse_overrides(items: list[str]) -> dict[str, int]:
+    integer_fields = [f.name for f in dataclasses.fields(IFNetConfig) if f.type is int]
     overrides = {}
     for item in items:
         field, _, value = item.partition("=")
-        integer_fields = [f.name for f in dataclasses.fields(IFNetConfig) if f.type is int]
         if field not in integer_fields or not value.lstrip("-").isdigit():
             raise SystemExit(f"--override {item!r}: expected FIELD=INT with FIELD one of {integer_fields}")
         overrides[field] = int(value)
@@ -145,10 +148,10 @@ def plot_losses(log_path: Path, png_path: Path) -> None:
         ax.set_title(key)
         ax.set_xlabel("step")
         ax.set_yscale("log")
-    for column, label in (("val_rotation_deg", "clean"), ("val_jitter_rotation_deg", "jittered")):
+    for column, noise in VALIDATION_COLUMNS.items():
         val = [(s, float(r[column])) for s, r in zip(steps, rows) if r.get(column)]
         if val:
-            axes[4].plot(*zip(*val), marker="o", label=label)
+            axes[4].plot(*zip(*val), marker="o", label=noise)
     axes[4].set_yscale("log")
     axes[4].legend()
     axes[4].set_title("validation rotation error (deg)")
@@ -170,11 +173,9 @@ def train(args: argparse.Namespace) -> Path:
     if args.max_shapes:
         train_shapes = train_shapes[: args.max_shapes]
     train_pairs = RegistrationPairs(train_shapes, [Protocol(noise=kind) for kind in args.noise], seed=args.seed)
-    # Validated on clean and on jittered pairs: a network can match clean pairs by their exact
-    # shared points and still fail as soon as the two clouds are sampled apart.
     validation = {
         column: RegistrationPairs(val_shapes, Protocol(noise=noise), seed=args.seed + 1)
-        for column, noise in (("val_rotation_deg", "clean"), ("val_jitter_rotation_deg", "jitter"))
+        for column, noise in VALIDATION_COLUMNS.items()
     }
 
     config: IFNetConfig = preset(args.preset, **parse_overrides(args.override))
@@ -242,10 +243,8 @@ def train(args: argparse.Namespace) -> Path:
                 if step % args.checkpoint_every == 0 or step == total_steps:
                     for column, pairs in validation.items():
                         row[column] = f"{validate(model, pairs, args.device, args.batch_size):.4f}"
-                    progress.write(
-                        f"step {step}: validation rotation error {row['val_rotation_deg']} deg clean, "
-                        f"{row['val_jitter_rotation_deg']} deg jittered"
-                    )
+                    errors = ", ".join(f"{row[column]} deg {noise}" for column, noise in VALIDATION_COLUMNS.items())
+                    progress.write(f"step {step}: validation rotation error {errors}")
                     save_checkpoint(checkpoint_path, model, optimizer, step, args)
                 log.writerow(row)
                 log_file.flush()
