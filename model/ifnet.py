@@ -19,7 +19,7 @@ from torch import Tensor, nn
 
 from model.ops import (
     compose,
-    gather_neighbours,
+    gather_rows,
     identity_transform,
     knn,
     neighbour_offsets,
@@ -117,7 +117,7 @@ def geometry_descriptor(points: Tensor, nearest_two: Tensor) -> Tensor:
 
     nearest_two [B, N, 2] are each point's two nearest other points.
     """
-    neighbours = gather_neighbours(points, nearest_two)  # [B, N, 2, 3]
+    neighbours = gather_rows(points, nearest_two)  # [B, N, 2, 3]
     edge1 = neighbours[:, :, 0] - points
     edge2 = neighbours[:, :, 1] - points
     lengths = torch.stack([edge1.norm(dim=-1), edge2.norm(dim=-1)], dim=-1)
@@ -162,11 +162,11 @@ class FeedbackTransformer(nn.Module):
         fused_descriptor = torch.cat([descriptor, other_descriptor], dim=1)
         fused_features = torch.cat([features, other_features], dim=1)  # [B, N+M, C]
 
-        pos = self.pos_mlp(descriptor.unsqueeze(2) - gather_neighbours(fused_descriptor, idx))
-        values = gather_neighbours(fused_features, idx) + pos  # [B, N, k, C]
+        pos = self.pos_mlp(descriptor.unsqueeze(2) - gather_rows(fused_descriptor, idx))
+        values = gather_rows(fused_features, idx) + pos  # [B, N, k, C]
         projected = F.linear(fused_features, self.attn_in.weight)  # [B, N+M, H], no bias
         query = projected[:, : points.shape[1]].unsqueeze(2)  # [B, N, 1, H]
-        logits = self.attn_out(query - gather_neighbours(projected, idx) + self.attn_in(pos))
+        logits = self.attn_out(query - gather_rows(projected, idx) + self.attn_in(pos))
         weights = torch.softmax(logits, dim=2)  # over the k neighbours, per channel
         return (weights * values).sum(dim=2)  # [B, N, C]
 

@@ -6,9 +6,10 @@ import pytest
 torch = pytest.importorskip("torch", reason="the model tests need torch (pip install -e '.[train]')")
 
 from model.ifnet import IFNet, IFNetConfig, preset  # noqa: E402
-from model.ops import transform_points  # noqa: E402
+from model.ops import gather_rows, neighbourhood_sum, transform_points  # noqa: E402
 from model.training.data import Protocol, make_pair, synthetic_shape  # noqa: E402
 from model.training.losses import (  # noqa: E402
+    Losses,
     global_registration_loss,
     ifnet_losses,
     neighbourhood_consistency_loss,
@@ -28,6 +29,27 @@ def assert_proper_rotations(rotation):
     eye = torch.eye(3).expand_as(rotation)
     assert torch.allclose(rotation @ rotation.transpose(1, 2), eye, atol=1e-5)
     assert torch.allclose(torch.linalg.det(rotation), torch.ones(rotation.shape[0]), atol=1e-5)
+
+
+def test_gather_rows_picks_each_batch_items_own_rows():
+    g = torch.Generator().manual_seed(0)
+    x = torch.randn(3, 10, 4, generator=g)
+    idx = torch.randint(0, 10, (3, 6, 2), generator=g)
+    expected = torch.stack([x[b][idx[b]] for b in range(3)])  # [3, 6, 2, 4]
+    assert torch.equal(gather_rows(x, idx), expected)
+    assert torch.equal(gather_rows(x, idx[..., 0]), expected[:, :, 0])
+
+
+def test_neighbourhood_sum_equals_adjacency_products():
+    g = torch.Generator().manual_seed(1)
+    p = torch.rand(2, 7, 9, generator=g)
+    rows_idx, cols_idx = torch.randint(0, 7, (2, 7, 3), generator=g), torch.randint(0, 9, (2, 9, 4), generator=g)
+
+    def adjacency(idx, n):  # A[i, a] = 1 for each a in idx[i] (counted with multiplicity)
+        return torch.zeros(idx.shape[0], idx.shape[1], n).scatter_add_(2, idx, torch.ones(idx.shape))
+
+    expected = adjacency(rows_idx, 7) @ p @ adjacency(cols_idx, 9).transpose(1, 2)
+    assert torch.allclose(neighbourhood_sum(p, rows_idx, cols_idx), expected, atol=1e-6)
 
 
 @pytest.mark.parametrize("batch", [1, 4])
@@ -141,6 +163,12 @@ def test_losses_near_zero_for_perfect_alignment_and_larger_when_wrong():
     flat = block._replace(matching=torch.full((1, 512, 512), 1.0 / 512))
     assert sharp < 0.01
     assert pseudo_consistency_loss(flat, keypoint_idx).item() > 5.0  # log(512) = 6.2
+
+
+def test_global_weight_scales_only_the_global_loss():
+    losses = Losses(torch.tensor(0.5), torch.tensor(2.0), torch.tensor(3.0))
+    assert losses.total.item() == 5.5  # the paper's equal weights
+    assert losses.weighted(global_weight=10.0).item() == 10.0
 
 
 @pytest.mark.slow

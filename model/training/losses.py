@@ -9,7 +9,7 @@ import torch
 from torch import Tensor
 
 from model.ifnet import BlockOutput, IFNetConfig, IFNetOutput
-from model.ops import gather_neighbours, gather_rows, pairwise_sq_distances, transform_points
+from model.ops import gather_rows, pairwise_sq_distances, transform_points
 
 
 class Losses(NamedTuple):
@@ -19,7 +19,12 @@ class Losses(NamedTuple):
 
     @property
     def total(self) -> Tensor:
-        return self.global_registration + self.neighbourhood_consistency + self.pseudo_consistency
+        """The paper's objective: the three losses with equal weights."""
+        return self.weighted(global_weight=1.0)
+
+    def weighted(self, global_weight: float) -> Tensor:
+        """The objective with the global registration loss scaled (an experiment knob)."""
+        return global_weight * self.global_registration + self.neighbourhood_consistency + self.pseudo_consistency
 
 
 def huber(x: Tensor, margin: float) -> Tensor:
@@ -49,8 +54,8 @@ def neighbourhood_consistency_loss(block: BlockOutput, keypoint_idx: Tensor, nei
     point_term = (transform_points(src_kp, rotation, translation) - tgt_kp).pow(2).sum((1, 2))
 
     kp_neighbours = gather_rows(neighbour_idx, keypoint_idx)  # [B, K, k]
-    src_edges = src_kp.unsqueeze(2) - gather_neighbours(block.source, kp_neighbours)  # [B, K, k, 3]
-    tgt_edges = tgt_kp.unsqueeze(2) - gather_neighbours(block.pseudo_target, kp_neighbours)
+    src_edges = src_kp.unsqueeze(2) - gather_rows(block.source, kp_neighbours)  # [B, K, k, 3]
+    tgt_edges = tgt_kp.unsqueeze(2) - gather_rows(block.pseudo_target, kp_neighbours)
     src_edges = src_edges @ rotation.unsqueeze(1).transpose(-1, -2)
     edge_term = (src_edges - tgt_edges).pow(2).sum((1, 2, 3)) / neighbour_idx.shape[-1]
     return point_term + edge_term
