@@ -70,6 +70,15 @@ def test_jitter_moves_every_point_by_at_most_five_sigma(shapes, sigma):
     assert np.median(offsets) > 0.5 * sigma  # every point moved, not just a few
 
 
+def test_training_jitter_sigma_reaches_the_pairs(shapes):
+    from model.training.train import parse_args, training_pairs
+
+    pairs = training_pairs(shapes, parse_args(["--noise", "jitter", "--jitter-sigma", "0.002"]))
+    offsets = np.concatenate([cKDTree(shapes[i]).query(pairs[i]["source"].numpy())[0] for i in range(4)])
+    assert offsets.max() <= 5 * 0.002 * np.sqrt(3) + 1e-6  # the default sigma (0.01) would exceed this
+    assert np.median(offsets) > 0.001
+
+
 def test_protocols_of_different_cloud_sizes_cannot_be_mixed(shapes):
     with pytest.raises(ValueError, match="one size"):
         RegistrationPairs(shapes, [Protocol(noise="clean"), Protocol(noise="outliers")])

@@ -71,6 +71,19 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
         default=["clean"],
         help="noise of the training pairs; several kinds are mixed pair by pair (e.g. --noise clean jitter)",
     )
+    parser.add_argument(
+        "--jitter-sigma",
+        type=float,
+        default=Protocol.jitter_sigma,
+        help="sigma of the training pairs' jitter (validation keeps the evaluation's 0.01); "
+        "raising it over successive fine-tunes makes a noise curriculum",
+    )
+    parser.add_argument(
+        "--global-weight",
+        type=float,
+        default=1.0,
+        help="weight of the global registration loss (the paper's 1; the other two keep 1), for experiments",
+    )
     parser.add_argument("--init-weights", type=Path, help="start from these weights (fine-tuning) instead of random")
     return parser.parse_args(argv)
 
@@ -90,6 +103,12 @@ def learning_rate(args: argparse.Namespace, step: int, total_steps: int) -> floa
     if args.schedule == "constant":
         return args.lr
     return args.lr * 0.5 * (1.0 + math.cos(math.pi * min(step / max(total_steps, 1), 1.0)))
+
+
+def training_pairs(shapes: np.ndarray, args: argparse.Namespace) -> RegistrationPairs:
+    """The training pairs: --noise kinds mixed pair by pair, jitter of --jitter-sigma."""
+    protocols = [Protocol(noise=kind, jitter_sigma=args.jitter_sigma) for kind in args.noise]
+    return RegistrationPairs(shapes, protocols, seed=args.seed)
 
 
 @torch.no_grad()
@@ -172,7 +191,7 @@ def train(args: argparse.Namespace) -> Path:
     val_shapes, train_shapes = shapes[-args.val_shapes :], shapes[: -args.val_shapes]
     if args.max_shapes:
         train_shapes = train_shapes[: args.max_shapes]
-    train_pairs = RegistrationPairs(train_shapes, [Protocol(noise=kind) for kind in args.noise], seed=args.seed)
+    train_pairs = training_pairs(train_shapes, args)
     validation = {
         column: RegistrationPairs(val_shapes, Protocol(noise=noise), seed=args.seed + 1)
         for column, noise in VALIDATION_COLUMNS.items()
@@ -224,7 +243,7 @@ def train(args: argparse.Namespace) -> Path:
                 target = batch["target"].to(args.device)
                 losses = ifnet_losses(model(batch["source"].to(args.device), target), target, config)
                 optimizer.zero_grad(set_to_none=True)
-                losses.total.backward()
+                losses.weighted(args.global_weight).backward()
                 optimizer.step()
                 step += 1
 
