@@ -16,7 +16,7 @@ import time
 from pathlib import Path
 
 import numpy as np
-from machine_check import session
+from machine_check import example_feeds, session
 
 
 def main() -> int:
@@ -29,10 +29,7 @@ def main() -> int:
         parser.error("give at least two models to compare")
 
     sessions = [session(model, args.threads) for model in args.models]
-    points = int(dict(sessions[0].get_modelmeta().custom_metadata_map).get("num_points", 768))
-    clouds = np.random.default_rng(0).normal(size=(2, 1, points, 3)).astype(np.float32)
-    clouds /= np.linalg.norm(clouds, axis=-1, keepdims=True).max()
-    feeds = {"source": clouds[0], "target": clouds[1]}
+    feeds = example_feeds(sessions[0])
     for s in sessions:  # warm-up
         s.run(None, feeds)
     ms = np.zeros((args.rounds, len(sessions)))

@@ -33,6 +33,14 @@ def session(model: Path, threads: int) -> ort.InferenceSession:
     return ort.InferenceSession(str(model), options, providers=["CPUExecutionProvider"])
 
 
+def example_feeds(model: ort.InferenceSession) -> dict[str, np.ndarray]:
+    """One fixed pair of random clouds (batch 1) at the model's native point count."""
+    points = int(dict(model.get_modelmeta().custom_metadata_map).get("num_points", 768))
+    clouds = np.random.default_rng(0).normal(size=(2, 1, points, 3)).astype(np.float32)
+    clouds /= np.linalg.norm(clouds, axis=-1, keepdims=True).max()
+    return {"source": clouds[0], "target": clouds[1]}
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--model", type=Path, default=DEFAULT_MODEL)
@@ -44,10 +52,7 @@ def main() -> int:
         parser.error("--seconds must be in [1, 120]")
 
     two, one = session(args.model, 2), session(args.model, 1)
-    points = int(dict(two.get_modelmeta().custom_metadata_map).get("num_points", 768))
-    clouds = np.random.default_rng(0).normal(size=(2, 1, points, 3)).astype(np.float32)
-    clouds /= np.linalg.norm(clouds, axis=-1, keepdims=True).max()
-    feeds = {"source": clouds[0], "target": clouds[1]}
+    feeds = example_feeds(two)
     two.run(None, feeds)
     one.run(None, feeds)
     samples = []
