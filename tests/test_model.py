@@ -156,6 +156,8 @@ def test_losses_near_zero_for_perfect_alignment_and_larger_when_wrong():
 
     assert global_registration_loss(moved, target, 0.01).item() < 1e-8
     assert global_registration_loss(bad_moved, target, 0.01).item() > 1e-4
+    assert global_registration_loss(moved, target, 0.01, on_distances=True).item() < 1e-4  # float32 rounding
+    assert global_registration_loss(bad_moved, target, 0.01, on_distances=True).item() > 1.0
     assert neighbourhood_consistency_loss(block, keypoint_idx, neighbours).item() < 1e-8
     assert neighbourhood_consistency_loss(bad_block, keypoint_idx, neighbours).item() > 1.0
 

@@ -32,10 +32,18 @@ def huber(x: Tensor, margin: float) -> Tensor:
     return torch.where(x < margin, 0.5 * x * x, margin * x - 0.5 * margin * margin)
 
 
-def global_registration_loss(moved_source: Tensor, target: Tensor, margin: float) -> Tensor:
-    """Huber of bidirectional nearest-neighbour squared distances, summed over points; [B]."""
+def global_registration_loss(moved_source: Tensor, target: Tensor, margin: float, on_distances: bool = False) -> Tensor:
+    """Huber of the bidirectional nearest-neighbour distances, summed over points; [B].
+
+    As the official code does it, the Huber is of squared distances: ~0.5 d^4 near the optimum,
+    whose gradient vanishes where noisy pairs still need one. on_distances (an experiment) takes
+    it of the distances instead, with margin sqrt(margin): ~0.5 d^2, gradient ~d.
+    """
     sq = pairwise_sq_distances(moved_source, target)  # [B, N, M]
-    return huber(sq.amin(dim=2), margin).sum(-1) + huber(sq.amin(dim=1), margin).sum(-1)
+    nearest = torch.cat([sq.amin(dim=2), sq.amin(dim=1)], dim=1)  # [B, N + M]
+    if on_distances:
+        return huber(torch.sqrt(nearest + 1e-12), margin**0.5).sum(-1)
+    return huber(nearest, margin).sum(-1)
 
 
 def keypoints(block: BlockOutput, count: int) -> Tensor:
@@ -67,15 +75,15 @@ def pseudo_consistency_loss(block: BlockOutput, keypoint_idx: Tensor) -> Tensor:
     return -torch.log(rows.amax(dim=-1) + 1e-15).mean(-1)
 
 
-def ifnet_losses(output: IFNetOutput, target: Tensor, config: IFNetConfig) -> Losses:
-    """The three losses averaged over blocks and batch."""
+def ifnet_losses(output: IFNetOutput, target: Tensor, config: IFNetConfig, global_on_distances: bool = False) -> Losses:
+    """The three losses averaged over blocks and batch (global_on_distances: see global_registration_loss)."""
     terms = torch.zeros(3, device=target.device)
     for block in output.blocks:
         moved = transform_points(block.source, block.rotation, block.translation)
         idx = keypoints(block, config.n_keypoints)
         terms = terms + torch.stack(
             [
-                global_registration_loss(moved, target, config.huber_margin).mean(),
+                global_registration_loss(moved, target, config.huber_margin, global_on_distances).mean(),
                 neighbourhood_consistency_loss(block, idx, output.source_graph.edgeconv).mean(),
                 pseudo_consistency_loss(block, idx).mean(),
             ]

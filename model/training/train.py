@@ -84,6 +84,12 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
         default=1.0,
         help="weight of the global registration loss (the paper's 1; the other two keep 1), for experiments",
     )
+    parser.add_argument(
+        "--global-loss",
+        choices=["squared", "distance"],
+        default="squared",
+        help="Huber of squared nearest-neighbour distances (the paper's) or of the distances, for experiments",
+    )
     parser.add_argument("--init-weights", type=Path, help="start from these weights (fine-tuning) instead of random")
     return parser.parse_args(argv)
 
@@ -241,7 +247,8 @@ def train(args: argparse.Namespace) -> Path:
                 for group in optimizer.param_groups:
                     group["lr"] = learning_rate(args, step, total_steps)
                 target = batch["target"].to(args.device)
-                losses = ifnet_losses(model(batch["source"].to(args.device), target), target, config)
+                output = model(batch["source"].to(args.device), target)
+                losses = ifnet_losses(output, target, config, global_on_distances=args.global_loss == "distance")
                 optimizer.zero_grad(set_to_none=True)
                 losses.weighted(args.global_weight).backward()
                 optimizer.step()
