@@ -62,7 +62,7 @@ def add_outliers(points: np.ndarray, rng: np.random.Generator, count: int = OUTL
     return np.concatenate([points, copies + np.clip(rng.normal(0.0, 0.5, copies.shape), -1.0, 1.0)])
 
 
-def add_jitter(points: np.ndarray, rng: np.random.Generator, sigma: float = 0.01) -> np.ndarray:
+def add_jitter(points: np.ndarray, rng: np.random.Generator, sigma: float) -> np.ndarray:
     return points + np.clip(rng.normal(0.0, sigma, points.shape), -5 * sigma, 5 * sigma)
 
 

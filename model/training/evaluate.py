@@ -225,7 +225,12 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     parser.add_argument("--sets", nargs="+", default=list(SETS), choices=list(SETS))
     parser.add_argument("--limit", type=int, default=0, help="pairs per set (0: every shape)")
     parser.add_argument("--seed", type=int, default=1234, help="pair i of a set is seeded by (seed, i)")
-    parser.add_argument("--jitter-sigma", type=float, default=0.01, help="of the jitter set (the protocol's 0.01)")
+    parser.add_argument(
+        "--jitter-sigma",
+        type=float,
+        default=Protocol.jitter_sigma,
+        help=f"of the jitter set (the protocol's {Protocol.jitter_sigma:g})",
+    )
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--no-baselines", action="store_true")
     parser.add_argument("--data-dir", type=Path, default=DEFAULT_DATA_DIR)
@@ -266,7 +271,7 @@ def main(argv: list[str] | None = None) -> dict:
         f"times are medians per pair on {args.threads} threads.\n\nCommand: `python -m model.training.evaluate "
         f"--model {model}"
         + (f" --limit {args.limit}" if args.limit else "")
-        + (f" --jitter-sigma {args.jitter_sigma:g}" if args.jitter_sigma != 0.01 else "")
+        + (f" --jitter-sigma {args.jitter_sigma:g}" if args.jitter_sigma != Protocol.jitter_sigma else "")
         + "`"
     )
     (args.out / "evaluation.md").write_text(markdown_report(results, header))
