@@ -14,6 +14,7 @@ from model.training.losses import (  # noqa: E402
     ifnet_losses,
     neighbourhood_consistency_loss,
     pseudo_consistency_loss,
+    teacher_consistency_loss,
 )
 
 # Narrow widths keep the full 3 x 3 unrolled model fast enough for unit tests.
@@ -171,6 +172,30 @@ def test_global_weight_scales_only_the_global_loss():
     losses = Losses(torch.tensor(0.5), torch.tensor(2.0), torch.tensor(3.0))
     assert losses.total.item() == 5.5  # the paper's equal weights
     assert losses.weighted(global_weight=10.0).item() == 10.0
+
+
+def test_teacher_consistency_measures_each_blocks_distance_from_the_taught_pose():
+    """Two blocks, the second completing the teacher's pose: the loss is the first block's mean
+    point distance from the taught positions, halved (the second contributes zero)."""
+    from scipy.spatial.transform import Rotation
+
+    from model.ifnet import BlockOutput, IFNetOutput
+    from model.ops import compose
+
+    source = torch.rand(1, 64, 3) - 0.5
+    r1 = torch.from_numpy(Rotation.from_euler("x", 20, degrees=True).as_matrix()).float()[None]
+    r2 = torch.from_numpy(Rotation.from_euler("y", 10, degrees=True).as_matrix()).float()[None]
+    t1, t2 = torch.tensor([[0.1, 0.0, 0.0]]), torch.tensor([[0.0, -0.2, 0.0]])
+    taught_r, taught_t = compose(r1, t1, r2, t2)
+    unused = dict(pseudo_target=source, weights=torch.ones(1, 64), matching=torch.eye(64)[None], target_features=source)
+    first = BlockOutput(r1, t1, source, **unused)
+    second = BlockOutput(r2, t2, transform_points(source, r1, t1), **unused)
+    output = IFNetOutput(taught_r, taught_t, [first, second], source_graph=None)
+
+    expected = (transform_points(source, r1, t1) - transform_points(source, taught_r, taught_t)).norm(dim=-1).mean() / 2
+    assert expected.item() > 0.05
+    torch.testing.assert_close(teacher_consistency_loss(output, taught_r, taught_t), expected)
+    assert teacher_consistency_loss(output, r2 @ r1, t2).item() > expected.item()  # a wrong taught pose
 
 
 @pytest.mark.slow

@@ -70,6 +70,29 @@ def test_jitter_moves_every_point_by_at_most_five_sigma(shapes, sigma):
     assert np.median(offsets) > 0.5 * sigma  # every point moved, not just a few
 
 
+def test_pairs_carry_their_clouds_before_noise(shapes):
+    """The noise-free clouds (a teacher's input) are the jittered clouds' points before jitter, one to one."""
+    clean = make_pair(shapes[3], Protocol(), np.random.default_rng(3))
+    jittered = make_pair(shapes[3], Protocol(noise="jitter"), np.random.default_rng(3))
+    for cloud in ("source", "target"):
+        np.testing.assert_array_equal(clean[f"noise_free_{cloud}"], clean[cloud])
+        np.testing.assert_array_equal(jittered[f"noise_free_{cloud}"], clean[cloud])  # same seed, same crop
+        offsets = np.linalg.norm(jittered[cloud] - jittered[f"noise_free_{cloud}"], axis=1)
+        assert np.median(offsets) > 0.005 and offsets.max() <= 0.05 * np.sqrt(3) + 1e-6
+
+
+def test_shared_jitter_keeps_exact_shared_points_off_the_shape(shapes):
+    """The diagnostic variant: the clouds share noisy points exactly, unlike the protocol's jitter."""
+    for shared in (True, False):
+        pair = make_pair(shapes[4], Protocol(noise="jitter", shared_jitter=shared), np.random.default_rng(4))
+        back = apply_transform(pair["target"] - pair["translation"], pair["rotation"].T.astype(np.float64), np.zeros(3))
+        exact = cKDTree(pair["source"]).query(back)[0] < 1e-5
+        assert (0.3 < exact.mean() < 1.0) if shared else not exact.any()
+        assert np.median(cKDTree(shapes[4].astype(np.float64)).query(pair["source"])[0]) > 0.005
+    with pytest.raises(ValueError, match="jitter noise only"):
+        Protocol(noise="outliers", shared_jitter=True)
+
+
 def test_training_jitter_sigma_reaches_the_pairs(shapes):
     from model.training.train import parse_args, training_pairs
 
@@ -121,6 +144,34 @@ def test_tiny_training_run_checkpoints_and_resumes(tmp_path, shapes):
     seconds = [float(r["seconds"]) for r in rows]
     assert seconds == sorted(seconds), "the training clock must continue across a resume"
     assert (tmp_path / "run" / "losses.png").stat().st_size > 0
+
+
+def save_random_network(path, seed: int):
+    """A randomly initialised fast-preset network, saved as shipped weights are; returns it."""
+    from model.ifnet import IFNet, preset
+
+    torch.manual_seed(seed)
+    network = IFNet(preset("fast"))
+    torch.save({"model": network.state_dict(), "config": network.config.to_dict()}, path)
+    return network
+
+
+def train_briefly(tmp_path, shapes, *options: str) -> None:
+    """A few steps of the fast preset on the synthetic shapes, on jittered pairs, into tmp_path/run."""
+    np.savez(tmp_path / "modelnet10_train.npz", points=shapes)
+    train_main(
+        ["--preset", "fast", "--data-dir", str(tmp_path), "--out", str(tmp_path / "run"), "--batch-size", "2"]
+        + ["--val-shapes", "2", "--threads", "1", "--noise", "jitter", *options]
+    )
+
+
+@pytest.mark.slow
+def test_training_with_a_teacher_logs_its_consistency_loss(tmp_path, shapes):
+    save_random_network(tmp_path / "teacher.pt", seed=5)
+    train_briefly(tmp_path, shapes, "--max-steps", "2", "--teacher", str(tmp_path / "teacher.pt"))
+    rows = list(csv.DictReader((tmp_path / "run" / "log.csv").open()))
+    # A random student and a random teacher disagree by a good fraction of the unit-sphere clouds.
+    assert all(float(r["teacher_consistency"]) > 0.01 for r in rows), rows
 
 
 def test_missing_data_gives_a_clear_error(tmp_path):
@@ -182,17 +233,8 @@ def test_shipped_weights_register_modelnet_test_pairs():
 
 
 def test_fine_tuning_starts_from_the_given_weights_on_noisy_pairs(tmp_path, shapes):
-    from model.ifnet import IFNet, preset
-
-    np.savez(tmp_path / "modelnet10_train.npz", points=shapes)
-    torch.manual_seed(123)
-    start = IFNet(preset("fast"))
-    torch.save({"model": start.state_dict(), "config": start.config.to_dict()}, tmp_path / "start.pt")
-    train_main(
-        ["--preset", "fast", "--data-dir", str(tmp_path), "--out", str(tmp_path / "run"), "--batch-size", "2"]
-        + ["--val-shapes", "2", "--threads", "1", "--max-steps", "1", "--lr", "1e-9", "--noise", "jitter"]
-        + ["--init-weights", str(tmp_path / "start.pt")]
-    )
+    start = save_random_network(tmp_path / "start.pt", seed=123)
+    train_briefly(tmp_path, shapes, "--max-steps", "1", "--lr", "1e-9", "--init-weights", str(tmp_path / "start.pt"))
     tuned = torch.load(tmp_path / "run" / "checkpoint.pt", weights_only=False)["model"]
     for name, value in start.state_dict().items():
         if value.is_floating_point() and "running" not in name:  # batch-norm statistics move in one step

@@ -46,10 +46,15 @@ class Protocol:
     max_translation: float = 0.5
     noise: str = "clean"
     jitter_sigma: float = 0.01  # of the "jitter" noise, clipped to 5 sigma
+    # Jitter the shape once, before the motion and the crops, so that both clouds keep exact shared
+    # (noisy) points: a diagnostic separating the noise itself from the loss of shared points.
+    shared_jitter: bool = False
 
     def __post_init__(self):
         if self.noise not in NOISE_KINDS:
             raise ValueError(f"noise must be one of {NOISE_KINDS}, got {self.noise!r}")
+        if self.shared_jitter and self.noise != "jitter":
+            raise ValueError("shared_jitter applies to the jitter noise only")
 
     @property
     def cloud_points(self) -> int:
@@ -67,8 +72,11 @@ def add_jitter(points: np.ndarray, rng: np.random.Generator, sigma: float) -> np
 
 
 def make_pair(shape: np.ndarray, protocol: Protocol, rng: np.random.Generator) -> dict[str, np.ndarray]:
-    """One registration pair from one shape: source, target, and the true (R, t) source->target."""
+    """One registration pair from one shape: source, target, the true (R, t) source->target, and
+    the two clouds before their own noise (a teacher's input in training; see train.py)."""
     points = shape[: protocol.num_points].astype(np.float64)
+    if protocol.shared_jitter:
+        points = add_jitter(points, rng, protocol.jitter_sigma)
     rotation, _ = random_rotation(rng, protocol.max_angle_deg)
     translation = rng.uniform(-protocol.max_translation, protocol.max_translation, size=3)
     source = rng.permutation(points)
@@ -77,9 +85,10 @@ def make_pair(shape: np.ndarray, protocol: Protocol, rng: np.random.Generator) -
     anchor = rng.random(3) + 500.0 * rng.choice([-1.0, 1.0])
     source = crop_nearest(source, anchor, protocol.crop_points)
     target = crop_nearest(target, anchor, protocol.crop_points)
+    noise_free = {"noise_free_source": source.astype(np.float32), "noise_free_target": target.astype(np.float32)}
     if protocol.noise == "outliers":
         source, target = add_outliers(source, rng), add_outliers(target, rng)
-    elif protocol.noise == "jitter":
+    elif protocol.noise == "jitter" and not protocol.shared_jitter:
         sigma = protocol.jitter_sigma
         source, target = add_jitter(source, rng, sigma), add_jitter(target, rng, sigma)
     return {
@@ -87,6 +96,7 @@ def make_pair(shape: np.ndarray, protocol: Protocol, rng: np.random.Generator) -
         "target": target.astype(np.float32),
         "rotation": rotation.astype(np.float32),
         "translation": translation.astype(np.float32),
+        **noise_free,
     }
 
 

@@ -231,6 +231,12 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
         default=Protocol.jitter_sigma,
         help=f"of the jitter set (the protocol's {Protocol.jitter_sigma:g})",
     )
+    parser.add_argument(
+        "--shared-jitter",
+        action="store_true",
+        help="jitter each shape once before the motion and crops, so both clouds share their noisy points "
+        "(a diagnostic: isolates the noise from the loss of exact shared points)",
+    )
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--no-baselines", action="store_true")
     parser.add_argument("--data-dir", type=Path, default=DEFAULT_DATA_DIR)
@@ -250,7 +256,8 @@ def main(argv: list[str] | None = None) -> dict:
     for set_name in args.sets:
         split, noise = SETS[set_name]
         shapes = load_split(split, args.data_dir)[: args.limit or None]
-        protocol = Protocol(noise=noise, jitter_sigma=args.jitter_sigma)
+        shared = args.shared_jitter and noise == "jitter"
+        protocol = Protocol(noise=noise, jitter_sigma=args.jitter_sigma, shared_jitter=shared)
         pairs = [make_pair(shape, protocol, np.random.default_rng((args.seed, i))) for i, shape in enumerate(shapes)]
         network(pairs[0]["source"], pairs[0]["target"])  # warm-up, kept out of the timings
         results[set_name], errors = {}, {}
@@ -272,6 +279,7 @@ def main(argv: list[str] | None = None) -> dict:
         f"--model {model}"
         + (f" --limit {args.limit}" if args.limit else "")
         + (f" --jitter-sigma {args.jitter_sigma:g}" if args.jitter_sigma != Protocol.jitter_sigma else "")
+        + (" --shared-jitter" if args.shared_jitter else "")
         + "`"
     )
     (args.out / "evaluation.md").write_text(markdown_report(results, header))

@@ -75,6 +75,21 @@ def pseudo_consistency_loss(block: BlockOutput, keypoint_idx: Tensor) -> Tensor:
     return -torch.log(rows.amax(dim=-1) + 1e-15).mean(-1)
 
 
+def teacher_consistency_loss(output: IFNetOutput, rotation: Tensor, translation: Tensor) -> Tensor:
+    """Mean distance between the source as each block leaves it and as a teacher's (R, t) moves it.
+
+    The teacher's (R, t) [B, 3, 3], [B, 3] is a trained network's estimate on the pair before its
+    noise, not the true pose: a registration signal on noisy pairs, whose clouds share no exact
+    points for the paper's losses to lock onto. Averaged over blocks, points and batch.
+    """
+    taught = transform_points(output.blocks[0].source, rotation, translation)  # [B, N, 3]
+    distances = [
+        (transform_points(block.source, block.rotation, block.translation) - taught).norm(dim=-1).mean()
+        for block in output.blocks
+    ]
+    return torch.stack(distances).mean()
+
+
 def ifnet_losses(output: IFNetOutput, target: Tensor, config: IFNetConfig, global_on_distances: bool = False) -> Losses:
     """The three losses averaged over blocks and batch (global_on_distances: see global_registration_loss)."""
     terms = torch.zeros(3, device=target.device)

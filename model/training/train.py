@@ -19,10 +19,11 @@ import torch
 from torch.utils.data import DataLoader, Subset
 from tqdm import tqdm
 
+from export.onnx_export import load_checkpoint
 from model.geometry import rotation_angle_deg
 from model.ifnet import PRESETS, IFNet, IFNetConfig, preset
 from model.training.data import DEFAULT_DATA_DIR, NOISE_KINDS, Protocol, RegistrationPairs, load_split
-from model.training.losses import ifnet_losses
+from model.training.losses import ifnet_losses, teacher_consistency_loss
 
 LOG_FIELDS = [
     "step",
@@ -32,6 +33,7 @@ LOG_FIELDS = [
     "global_registration",
     "neighbourhood_consistency",
     "pseudo_consistency",
+    "teacher_consistency",
     "val_rotation_deg",
     "val_jitter_rotation_deg",
     "seconds",
@@ -90,6 +92,18 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
         default="squared",
         help="Huber of squared nearest-neighbour distances (the paper's) or of the distances, for experiments",
     )
+    parser.add_argument(
+        "--teacher",
+        type=Path,
+        help="weights of a trained network whose (R, t) on each pair before its noise every block is pulled "
+        "towards (--teacher-weight): a registration signal on noisy pairs without the true pose",
+    )
+    parser.add_argument(
+        "--teacher-weight",
+        type=float,
+        default=1000.0,
+        help="weight of the teacher consistency loss (its gradient is ~1/100 of the neighbourhood loss's)",
+    )
     parser.add_argument("--init-weights", type=Path, help="start from these weights (fine-tuning) instead of random")
     return parser.parse_args(argv)
 
@@ -115,6 +129,18 @@ def training_pairs(shapes: np.ndarray, args: argparse.Namespace) -> Registration
     """The training pairs: --noise kinds mixed pair by pair, jitter of --jitter-sigma."""
     protocols = [Protocol(noise=kind, jitter_sigma=args.jitter_sigma) for kind in args.noise]
     return RegistrationPairs(shapes, protocols, seed=args.seed)
+
+
+def load_teacher(path: Path, device: str) -> IFNet:
+    teacher, _ = load_checkpoint(path)
+    return teacher.to(device).requires_grad_(False)
+
+
+@torch.no_grad()
+def taught_transform(teacher: IFNet, batch: dict[str, torch.Tensor], device: str) -> tuple[torch.Tensor, torch.Tensor]:
+    """The teacher's (R, t) on the pair before noise: its source points map one to one onto the student's."""
+    out = teacher(batch["noise_free_source"].to(device), batch["noise_free_target"].to(device))
+    return out.rotation, out.translation
 
 
 @torch.no_grad()
@@ -205,6 +231,7 @@ def train(args: argparse.Namespace) -> Path:
 
     config: IFNetConfig = preset(args.preset, **parse_overrides(args.override))
     model = IFNet(config).to(args.device)
+    teacher = load_teacher(args.teacher, args.device) if args.teacher else None
     optimizer = torch.optim.Adam(model.parameters(), lr=args.lr)
     step, seconds_before = 0, 0.0
     if checkpoint_path.exists():
@@ -249,12 +276,21 @@ def train(args: argparse.Namespace) -> Path:
                 target = batch["target"].to(args.device)
                 output = model(batch["source"].to(args.device), target)
                 losses = ifnet_losses(output, target, config, global_on_distances=args.global_loss == "distance")
+                objective = losses.weighted(args.global_weight)
+                taught = torch.zeros(())
+                if teacher is not None:
+                    taught = teacher_consistency_loss(output, *taught_transform(teacher, batch, args.device))
+                    objective = objective + args.teacher_weight * taught
                 optimizer.zero_grad(set_to_none=True)
-                losses.weighted(args.global_weight).backward()
+                objective.backward()
                 optimizer.step()
                 step += 1
 
-                values = {"total": losses.total.item(), **{k: v.item() for k, v in losses._asdict().items()}}
+                values = {
+                    "total": losses.total.item(),
+                    **{k: v.item() for k, v in losses._asdict().items()},
+                    "teacher_consistency": taught.item(),
+                }
                 running = {k: 0.9 * running.get(k, v) + 0.1 * v for k, v in values.items()}
                 progress.set_postfix({k[:6]: f"{v:.3g}" for k, v in running.items()})
                 progress.update()
