@@ -174,6 +174,15 @@ def test_training_with_a_teacher_logs_its_consistency_loss(tmp_path, shapes):
     assert all(float(r["teacher_consistency"]) > 0.01 for r in rows), rows
 
 
+def test_only_the_full_evaluation_writes_the_published_report():
+    from model.training.evaluate import PUBLISHED_REPORT, QUICK_REPORT, parse_args
+
+    assert parse_args([]).out == PUBLISHED_REPORT
+    for partial in (["--limit", "100"], ["--sets", "jitter"], ["--no-baselines"], ["--shared-jitter"]):
+        assert parse_args(partial).out == QUICK_REPORT, partial
+    assert str(parse_args(["--limit", "5", "--out", "elsewhere"]).out) == "elsewhere"
+
+
 def test_missing_data_gives_a_clear_error(tmp_path):
     with pytest.raises(FileNotFoundError, match="--data-dir"):
         load_split("train", tmp_path)

@@ -1,7 +1,7 @@
 """Evaluate a trained IFNet by the paper's protocol, against Open3D baselines on the same pairs.
 
-    python -m model.training.evaluate                          # shipped ONNX model, every set
-    python -m model.training.evaluate --model runs/fast/checkpoint.pt --limit 50
+    python -m model.training.evaluate                          # shipped ONNX model, every set -> docs/evaluation
+    python -m model.training.evaluate --model runs/fast/checkpoint.pt --limit 50   # -> runs/evaluation
 
 Sets: same (ModelNet10 test), unseen (ModelNet40 categories absent from ModelNet10), outliers
 and jitter (ModelNet10 test with the protocol's two noise variants). Rows: the network alone,
@@ -209,6 +209,10 @@ def markdown_report(results: dict[str, dict[str, dict]], header: str) -> str:
     return "\n".join(lines)
 
 
+PUBLISHED_REPORT = Path("docs/evaluation")
+QUICK_REPORT = Path("runs/evaluation")
+
+
 def display_path(path: Path) -> str:
     """The path relative to the working directory when it lies under it, so reports stay portable."""
     try:
@@ -240,8 +244,18 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--no-baselines", action="store_true")
     parser.add_argument("--data-dir", type=Path, default=DEFAULT_DATA_DIR)
-    parser.add_argument("--out", type=Path, default=Path("docs/evaluation"))
-    return parser.parse_args(argv)
+    parser.add_argument(
+        "--out",
+        type=Path,
+        help=f"report folder (default: {PUBLISHED_REPORT} for the full default run, {QUICK_REPORT} for any "
+        "other, so that quick checks never overwrite the published report)",
+    )
+    args = parser.parse_args(argv)
+    if args.out is None:
+        defaults = vars(parser.parse_args([]))
+        full_run = all(value == defaults[name] for name, value in vars(args).items())
+        args.out = PUBLISHED_REPORT if full_run else QUICK_REPORT
+    return args
 
 
 def main(argv: list[str] | None = None) -> dict:
