@@ -169,9 +169,22 @@ def train_briefly(tmp_path, shapes, *options: str) -> None:
 def test_training_with_a_teacher_logs_its_consistency_loss(tmp_path, shapes):
     save_random_network(tmp_path / "teacher.pt", seed=5)
     train_briefly(tmp_path, shapes, "--max-steps", "2", "--teacher", str(tmp_path / "teacher.pt"))
+    from model.training.ship import ship
+
+    record = ship(tmp_path / "run" / "checkpoint.pt", tmp_path / "shipped.pt")
+    assert "teacher consistency" in record["training"]["objective"], record["training"]
     rows = list(csv.DictReader((tmp_path / "run" / "log.csv").open()))
     # A random student and a random teacher disagree by a good fraction of the unit-sphere clouds.
     assert all(float(r["teacher_consistency"]) > 0.01 for r in rows), rows
+
+
+def test_the_shipped_record_names_the_training_objective():
+    from model.training.ship import training_objective
+
+    paper = {"global_loss": "squared", "global_weight": 1.0, "teacher": None, "teacher_weight": 1000.0}
+    assert training_objective(paper) == "the paper's three unsupervised losses"
+    assert "weighted 100" in training_objective(paper | {"global_weight": 100.0})
+    assert "teacher consistency with t.pt (weight 1000)" in training_objective(paper | {"teacher": "t.pt"})
 
 
 def test_only_the_full_evaluation_writes_the_published_report():

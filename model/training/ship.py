@@ -20,6 +20,18 @@ from export.onnx_export import DEFAULT_WEIGHTS, file_sha256
 TRAINING_DATA = "ModelNet10 train split (../shared/data/modelnet10_train.npz), last 64 shapes held out for validation"
 
 
+def training_objective(args: dict) -> str:
+    """The losses a checkpoint was trained with, from its recorded command-line arguments."""
+    objective = "the paper's three unsupervised losses"
+    if args.get("global_loss", "squared") != "squared":
+        objective += f", global loss on {args['global_loss']}s"
+    if args.get("global_weight", 1.0) != 1.0:
+        objective += f", global loss weighted {args['global_weight']:g}"
+    if args.get("teacher"):
+        objective += f", plus teacher consistency with {args['teacher']} (weight {args['teacher_weight']:g})"
+    return objective
+
+
 def ship(checkpoint: Path, weights: Path) -> dict:
     state = torch.load(checkpoint, map_location="cpu", weights_only=True)
     preset_name = state.get("preset") or state["args"]["preset"]
@@ -40,6 +52,7 @@ def ship(checkpoint: Path, weights: Path) -> dict:
         ),
         "training": {
             "data": TRAINING_DATA,
+            "objective": training_objective(state["args"]),
             "steps": state["step"],
             "epochs": float(rows[-1]["epoch"]) if rows else None,
             "batch_size": state["args"]["batch_size"],
