@@ -117,9 +117,7 @@ def geometry_descriptor(points: Tensor, nearest_two: Tensor) -> Tensor:
 
     nearest_two [B, N, 2] are each point's two nearest other points.
     """
-    neighbours = gather_rows(points, nearest_two)  # [B, N, 2, 3]
-    edge1 = neighbours[:, :, 0] - points
-    edge2 = neighbours[:, :, 1] - points
+    edge1, edge2 = neighbour_offsets(points, nearest_two).unbind(2)  # [B, N, 3] each
     lengths = torch.stack([edge1.norm(dim=-1), edge2.norm(dim=-1)], dim=-1)
     normal = torch.cross(edge1, edge2, dim=-1)
     return torch.cat([points, edge1, edge2, lengths, normal], dim=-1)
