@@ -108,7 +108,7 @@ def test_protocols_of_different_cloud_sizes_cannot_be_mixed(shapes):
 
 
 @pytest.mark.slow
-def test_tiny_training_run_checkpoints_and_resumes(tmp_path, shapes):
+def test_tiny_training_run_checkpoints_and_resumes(tmp_path, shapes, capsys):
     np.savez(tmp_path / "modelnet10_train.npz", points=shapes)
     common = [
         "--preset",
@@ -131,7 +131,9 @@ def test_tiny_training_run_checkpoints_and_resumes(tmp_path, shapes):
     first = torch.load(checkpoint, weights_only=False)
     assert first["step"] == 2
 
+    capsys.readouterr()
     train_main([*common, "--max-steps", "3"])
+    assert "--max-steps 3 (checkpoint: 2)" in capsys.readouterr().out  # the schedule changed: say so
     second = torch.load(checkpoint, weights_only=False)
     assert second["step"] == 3
     changed = [k for k in first["model"] if not torch.equal(first["model"][k], second["model"][k])]

@@ -163,11 +163,26 @@ def save_checkpoint(path: Path, model: IFNet, optimizer: torch.optim.Optimizer, 
         "preset": args.preset,
         "optimizer": optimizer.state_dict(),
         "step": step,
-        "args": {k: str(v) if isinstance(v, Path) else v for k, v in vars(args).items()},
+        "args": recorded_args(args),
     }
     tmp = path.with_suffix(".tmp")
     torch.save(state, tmp)
     tmp.replace(path)  # atomic: a kill mid-write never leaves a broken checkpoint
+
+
+def recorded_args(args: argparse.Namespace) -> dict:
+    return {k: str(v) if isinstance(v, Path) else v for k, v in vars(args).items()}
+
+
+def changed_options(saved: dict, args: argparse.Namespace) -> list[str]:
+    """This run's options that differ from those its checkpoint was written with (--out aside):
+    legitimate (e.g. more --epochs to train on), but they change the run, e.g. its lr schedule."""
+    current = recorded_args(args)
+    return [
+        f"--{name.replace('_', '-')} {current[name]} (checkpoint: {saved[name]})"
+        for name in sorted(current.keys() & saved.keys())
+        if name != "out" and current[name] != saved[name]
+    ]
 
 
 def truncate_log(log_path: Path, step: int) -> float:
@@ -243,6 +258,8 @@ def train(args: argparse.Namespace) -> Path:
         step = state["step"]
         seconds_before = truncate_log(log_path, step)
         print(f"resumed from {checkpoint_path} at step {step}")
+        if changed := changed_options(state.get("args", {}), args):
+            print("options differ from the checkpoint's; training continues with the new ones: " + ", ".join(changed))
     else:
         if args.init_weights:
             model.load_state_dict(torch.load(args.init_weights, map_location=args.device, weights_only=True)["model"])
