@@ -14,9 +14,9 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial import cKDTree
 
-from export.onnx_export import ort_session
 from model.geometry import registration_errors
-from model.training.data import Protocol, load_split, make_pair
+from model.training.data import evaluation_pairs
+from model.training.evaluate import network_runner
 
 
 def neighbourhood_mean(points: np.ndarray, k: int) -> np.ndarray:
@@ -34,23 +34,20 @@ def main() -> None:
     parser.add_argument("--seed", type=int, default=1234, help="the evaluation's pair seed")
     args = parser.parse_args()
 
-    session = ort_session(args.model, 2)
-    shapes = load_split("same")[: args.pairs]
+    network = network_runner(args.model, threads=2)
     for noise in ("clean", "jitter", "outliers"):
-        protocol = Protocol(noise=noise)
-        pairs = [make_pair(shape, protocol, np.random.default_rng((args.seed, i))) for i, shape in enumerate(shapes)]
+        pairs = evaluation_pairs(args.pairs, noise, args.seed)
         true_rotations = np.array([pair["rotation"] for pair in pairs], np.float64)
         true_translations = np.array([pair["translation"] for pair in pairs], np.float64)
         for k in args.k:
             rotations, translations = [], []
             for pair in pairs:
-                feeds = {name: neighbourhood_mean(pair[name], k)[None] for name in ("source", "target")}
-                rotation, translation = session.run(None, feeds)
-                rotations.append(rotation[0])
-                translations.append(translation[0])
-            errors = registration_errors(
-                np.array(rotations, np.float64), np.array(translations, np.float64), true_rotations, true_translations
-            )
+                rotation, translation = network(
+                    neighbourhood_mean(pair["source"], k), neighbourhood_mean(pair["target"], k)
+                )
+                rotations.append(rotation)
+                translations.append(translation)
+            errors = registration_errors(np.array(rotations), np.array(translations), true_rotations, true_translations)
             print(
                 f"{noise:8s} k={k:2d}: MAE(R) {errors['euler_abs'].mean():.3f} deg, "
                 f"median rotation error {np.median(errors['rotation_deg']):.3f} deg, "
