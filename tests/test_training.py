@@ -189,6 +189,15 @@ def test_the_shipped_record_names_the_training_objective():
     assert "teacher consistency with t.pt (weight 1000)" in training_objective(paper | {"teacher": "t.pt"})
 
 
+def test_the_shipped_record_names_the_noise_of_the_training_pairs():
+    from model.training.ship import pair_noise
+
+    assert pair_noise({"noise": ["clean"], "jitter_sigma": 0.01}) == "clean"
+    assert pair_noise({}) == "clean"  # checkpoints from before --noise trained on clean pairs
+    mixed = pair_noise({"noise": ["clean", "jitter"], "jitter_sigma": 0.01})
+    assert mixed == "clean, jitter mixed pair by pair, jitter sigma 0.01"
+
+
 def test_only_the_full_evaluation_writes_the_published_report():
     from model.training.evaluate import PUBLISHED_REPORT, QUICK_REPORT, parse_args
 

@@ -3,8 +3,9 @@
     python -m model.training.ship --checkpoint runs/fast/checkpoint.pt
     python -m model.training.ship --evaluation docs/evaluation/evaluation.json   # add the eval summary
 
-Writes model/weights/ifnet-<preset>.pt (model state and config only, no optimiser) and
-ifnet-<preset>.json (preset, training data, steps and epochs, date, checksum, evaluation).
+Writes model/weights/ifnet-<preset>.pt (or the --weights path: model state and config only, no
+optimiser) and the record beside it, ifnet-<preset>.json (preset, training data and noise, steps and
+epochs, date, checksum, evaluation).
 """
 
 import argparse
@@ -32,6 +33,14 @@ def training_objective(args: dict) -> str:
     return objective
 
 
+def pair_noise(args: dict) -> str:
+    """The noise of the pairs a checkpoint was trained on (runs before `--noise` existed: clean)."""
+    noise = args.get("noise", ["clean"])
+    if "jitter" in noise:
+        return ", ".join(noise) + f" mixed pair by pair, jitter sigma {args['jitter_sigma']:g}"
+    return ", ".join(noise)
+
+
 def ship(checkpoint: Path, weights: Path) -> dict:
     state = torch.load(checkpoint, map_location="cpu", weights_only=True)
     preset_name = state.get("preset") or state["args"]["preset"]
@@ -53,6 +62,7 @@ def ship(checkpoint: Path, weights: Path) -> dict:
         "training": {
             "data": TRAINING_DATA,
             "objective": training_objective(state["args"]),
+            "pair_noise": pair_noise(state["args"]),
             "steps": state["step"],
             "epochs": float(rows[-1]["epoch"]) if rows else None,
             "batch_size": state["args"]["batch_size"],
