@@ -2,6 +2,7 @@
 
 python -m export                                   # shipped weights -> service/models/ifnet.onnx
 python -m export --weights runs/fast/checkpoint.pt --output /tmp/ifnet.onnx
+python -m export --iterations 6 --output /tmp/ifnet-6.onnx  # 3 time steps x 6 iterations
 """
 
 import argparse
@@ -31,16 +32,26 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--weights", type=Path, default=DEFAULT_WEIGHTS, help="checkpoint or shipped weights (.pt)")
     parser.add_argument("--output", type=Path, default=DEFAULT_OUTPUT)
+    parser.add_argument(
+        "--iterations",
+        type=int,
+        default=None,
+        help="blocks per time step in the exported graph (default: as trained); the block's weights are "
+        "shared, so any count runs; measured effect: docs/training/experiments/README.md",
+    )
     parser.add_argument("--preset-name", default=None, help="recorded in the metadata (default: from the weights file)")
     parser.add_argument("--check-pairs", type=int, default=8, help="pairs compared between torch and ONNX Runtime")
     parser.add_argument("--rotation-tol", type=float, default=1e-3, help="max |R_onnx - R_torch| per entry")
     parser.add_argument("--angle-tol", type=float, default=0.01, help="max difference of rotation errors (deg)")
-    return parser.parse_args(argv)
+    args = parser.parse_args(argv)
+    if args.iterations is not None and args.iterations < 1:
+        parser.error(f"--iterations must be at least 1, got {args.iterations}")
+    return args
 
 
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
-    model, weights_sha256 = load_checkpoint(args.weights)
+    model, weights_sha256 = load_checkpoint(args.weights, args.iterations)
     preset_name = args.preset_name or torch.load(args.weights, map_location="cpu", weights_only=True).get(
         "preset", "custom"
     )

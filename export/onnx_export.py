@@ -10,7 +10,7 @@ import datetime as dt
 import hashlib
 import json
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -52,10 +52,20 @@ def file_sha256(path: Path) -> str:
     return hashlib.sha256(Path(path).read_bytes()).hexdigest()
 
 
-def load_checkpoint(path: Path) -> tuple[IFNet, str]:
-    """The model in eval mode from a training checkpoint or shipped weights, and the file's sha256."""
+def load_checkpoint(path: Path, iterations: int | None = None) -> tuple[IFNet, str]:
+    """The model in eval mode from a training checkpoint or shipped weights, and the file's sha256.
+
+    `iterations` overrides the blocks per time step (`n_iters`) the weights were trained with:
+    every iteration runs the same shared block, so the weights run at any count, and each extra
+    iteration moves the source once more from the last estimate (cost grows linearly).
+    """
     state = torch.load(path, map_location="cpu", weights_only=True)
-    model = IFNet(IFNetConfig.from_dict(state["config"]))
+    config = IFNetConfig.from_dict(state["config"])
+    if iterations is not None:
+        if iterations < 1:
+            raise ValueError(f"iterations must be at least 1, got {iterations}")
+        config = replace(config, n_iters=iterations)
+    model = IFNet(config)
     model.load_state_dict(state["model"])
     return model.eval(), file_sha256(path)
 

@@ -164,3 +164,31 @@ def test_committed_onnx_matches_committed_weights():
     report = compare_with_torch(session, model, evaluation_pairs(6, seed=11))
     assert report.max_rotation_entry <= 1e-3, report
     assert report.max_angle_difference_deg <= 0.01, report
+
+
+@pytest.mark.skipif(not DEFAULT_WEIGHTS.exists(), reason="no shipped weights in the checkout")
+def test_more_iterations_run_the_same_block_longer():
+    """The override changes only how often the shared block runs: the first time step's first
+    three blocks see the same inputs, so they give what the trained 3-iteration model gives."""
+    trained, _ = load_checkpoint(DEFAULT_WEIGHTS)
+    longer, _ = load_checkpoint(DEFAULT_WEIGHTS, iterations=5)
+    assert longer.config.n_iters == 5 and longer.config.time_steps == trained.config.time_steps
+    source, target = stacked_pairs(1)
+    with torch.no_grad():
+        short_out, long_out = trained(source, target), longer(source, target)
+    assert len(long_out.blocks) == 5 * trained.config.time_steps
+    for index in range(trained.config.n_iters):
+        torch.testing.assert_close(long_out.blocks[index].rotation, short_out.blocks[index].rotation)
+    with pytest.raises(ValueError, match="at least 1"):
+        load_checkpoint(DEFAULT_WEIGHTS, iterations=0)
+
+
+@pytest.mark.skipif(not DEFAULT_WEIGHTS.exists(), reason="no shipped weights in the checkout")
+def test_export_command_records_the_iteration_count(tmp_path):
+    from export.__main__ import main
+
+    output = tmp_path / "ifnet-2.onnx"
+    assert main(["--iterations", "2", "--output", str(output), "--check-pairs", "2"]) == 0
+    metadata = ort_session(output).get_modelmeta().custom_metadata_map
+    assert json.loads(metadata["config"])["n_iters"] == 2
+    assert metadata["weights_sha256"] == file_sha256(DEFAULT_WEIGHTS)
