@@ -207,6 +207,29 @@ def test_only_the_full_evaluation_writes_the_published_report():
     assert str(parse_args(["--limit", "5", "--out", "elsewhere"]).out) == "elsewhere"
 
 
+def test_a_spread_subset_takes_the_full_runs_pairs_across_the_set():
+    from model.training.evaluate import shape_indices
+
+    assert shape_indices(908, 0, spread=True).tolist() == list(range(908))
+    assert shape_indices(908, 100, spread=False).tolist() == list(range(100))
+    spread = shape_indices(908, 100, spread=True)
+    assert len(set(spread.tolist())) == 100 and spread[0] == 0 and spread[-1] == 907
+    assert np.all(np.diff(spread) >= 9)  # no stretch of the set is left out or sampled twice
+    assert shape_indices(50, 100, spread=True).tolist() == list(range(50))
+
+
+def test_a_spread_subset_of_modelnet10_test_holds_every_class():
+    from model.training.data import DEFAULT_DATA_DIR
+    from model.training.evaluate import shape_indices
+
+    path = DEFAULT_DATA_DIR / "modelnet10_test.npz"
+    if not path.exists():
+        pytest.skip(f"{path} is missing (../shared/data)")
+    labels = np.load(path)["labels"]
+    assert set(labels[shape_indices(len(labels), 100, spread=True)]) == set(labels)
+    assert len(set(labels[shape_indices(len(labels), 100, spread=False)])) < len(set(labels))
+
+
 def test_missing_data_gives_a_clear_error(tmp_path):
     with pytest.raises(FileNotFoundError, match="--data-dir"):
         load_split("train", tmp_path)

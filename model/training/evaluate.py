@@ -221,6 +221,16 @@ def display_path(path: Path) -> str:
         return str(path)
 
 
+def shape_indices(total: int, limit: int, spread: bool) -> np.ndarray:
+    """The shapes of a set to evaluate: every one, its first `limit`, or `limit` spread evenly over
+    it. Pair i stays seeded by its shape's index, so a subset's pairs are the full run's pairs."""
+    if not limit or limit >= total:
+        return np.arange(total)
+    if spread:
+        return np.linspace(0, total - 1, limit).round().astype(int)
+    return np.arange(limit)
+
+
 def parse_args(argv: list[str] | None) -> argparse.Namespace:
     from export.onnx_export import DEFAULT_OUTPUT
 
@@ -228,6 +238,12 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     parser.add_argument("--model", type=Path, default=DEFAULT_OUTPUT, help=".onnx (ONNX Runtime) or .pt (torch)")
     parser.add_argument("--sets", nargs="+", default=list(SETS), choices=list(SETS))
     parser.add_argument("--limit", type=int, default=0, help="pairs per set (0: every shape)")
+    parser.add_argument(
+        "--spread",
+        action="store_true",
+        help="with --limit: take the pairs evenly over the set instead of its first shapes (the splits are "
+        "ordered by class, so the first 100 ModelNet10 test shapes are bathtubs and beds only)",
+    )
     parser.add_argument("--seed", type=int, default=1234, help="pair i of a set is seeded by (seed, i)")
     parser.add_argument(
         "--jitter-sigma",
@@ -269,10 +285,13 @@ def main(argv: list[str] | None = None) -> dict:
     results: dict[str, dict[str, dict]] = {}
     for set_name in args.sets:
         split, noise = SETS[set_name]
-        shapes = load_split(split, args.data_dir)[: args.limit or None]
+        shapes = load_split(split, args.data_dir)
         shared = args.shared_jitter and noise == "jitter"
         protocol = Protocol(noise=noise, jitter_sigma=args.jitter_sigma, shared_jitter=shared)
-        pairs = [make_pair(shape, protocol, np.random.default_rng((args.seed, i))) for i, shape in enumerate(shapes)]
+        pairs = [
+            make_pair(shapes[i], protocol, np.random.default_rng((args.seed, i)))
+            for i in shape_indices(len(shapes), args.limit, args.spread)
+        ]
         network(pairs[0]["source"], pairs[0]["target"])  # warm-up, kept out of the timings
         results[set_name], errors = {}, {}
         for method, (s, rotation_errors) in evaluate_methods(methods, pairs).items():
@@ -291,9 +310,12 @@ def main(argv: list[str] | None = None) -> dict:
         f"ICP after IFNet and after FPFH + RANSAC ({RANSAC_ITERATIONS:,} iterations, confidence {RANSAC_CONFIDENCE}); "
         f"times are medians per pair on {args.threads} threads.\n\nCommand: `python -m model.training.evaluate "
         f"--model {model}"
+        + (f" --sets {' '.join(args.sets)}" if args.sets != list(SETS) else "")
         + (f" --limit {args.limit}" if args.limit else "")
+        + (" --spread" if args.spread and args.limit else "")
         + (f" --jitter-sigma {args.jitter_sigma:g}" if args.jitter_sigma != Protocol.jitter_sigma else "")
         + (" --shared-jitter" if args.shared_jitter else "")
+        + (" --no-baselines" if args.no_baselines else "")
         + "`"
     )
     (args.out / "evaluation.md").write_text(markdown_report(results, header))
