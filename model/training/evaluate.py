@@ -267,6 +267,8 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
         "other, so that quick checks never overwrite the published report)",
     )
     args = parser.parse_args(argv)
+    if args.limit < 0:
+        parser.error(f"--limit must be 0 (every shape) or more, got {args.limit}")
     if args.out is None:
         defaults = vars(parser.parse_args([]))
         full_run = all(value == defaults[name] for name, value in vars(args).items())
