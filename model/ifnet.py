@@ -48,6 +48,13 @@ class IFNetConfig:
     huber_margin: float = 0.01  # margin of the global registration loss
     num_points: int = 768  # native point count the model is trained and served at
 
+    def __post_init__(self) -> None:
+        # A zero count or width builds a graph that fails far from here (or silently does nothing).
+        for name, value in asdict(self).items():
+            sizes = value if isinstance(value, (tuple, list)) else (value,)
+            if isinstance(sizes[0], int) and min(sizes) < 1:
+                raise ValueError(f"IFNetConfig.{name} must be at least 1, got {value}")
+
     def to_dict(self) -> dict:
         return asdict(self)
 

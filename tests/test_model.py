@@ -116,6 +116,13 @@ def test_gradients_reach_every_parameter():
     assert all(torch.isfinite(p.grad).all() for p in model.parameters())
 
 
+def test_config_rejects_counts_and_widths_below_one():
+    for field, value in (("n_iters", 0), ("time_steps", -1), ("edgeconv_k", 0), ("edgeconv_widths", (32, 0))):
+        with pytest.raises(ValueError, match=f"IFNetConfig.{field} must be at least 1"):
+            preset("fast", **{field: value})
+    assert IFNetConfig(n_iters=1, time_steps=1).n_iters == 1
+
+
 def test_every_size_is_a_config_field():
     """Changing a config width changes the module sizes: nothing is a hidden literal."""
     small = IFNet(preset("fast")).num_parameters()

@@ -324,3 +324,9 @@ def test_config_overrides_accept_integer_fields_only():
     for bad in ("edgeconv_k=1.5", "bogus=3", "edgeconv_k"):
         with pytest.raises(SystemExit, match="FIELD=INT"):
             parse_overrides([bad])
+
+
+def test_an_override_below_one_is_a_usage_error_before_any_work(tmp_path):
+    with pytest.raises(SystemExit, match="--override: IFNetConfig.n_iters must be at least 1, got 0"):
+        train_main(["--preset", "fast", "--override", "n_iters=0", "--out", str(tmp_path / "run")])
+    assert not (tmp_path / "run").exists()

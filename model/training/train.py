@@ -228,6 +228,10 @@ def plot_losses(log_path: Path, png_path: Path) -> None:
 
 
 def train(args: argparse.Namespace) -> Path:
+    try:
+        config: IFNetConfig = preset(args.preset, **parse_overrides(args.override))
+    except ValueError as error:
+        raise SystemExit(f"--override: {error}") from None
     if args.threads:
         torch.set_num_threads(args.threads)
     torch.manual_seed(args.seed)
@@ -244,7 +248,6 @@ def train(args: argparse.Namespace) -> Path:
         for column, noise in VALIDATION_COLUMNS.items()
     }
 
-    config: IFNetConfig = preset(args.preset, **parse_overrides(args.override))
     model = IFNet(config).to(args.device)
     teacher = load_teacher(args.teacher, args.device) if args.teacher else None
     optimizer = torch.optim.Adam(model.parameters(), lr=args.lr)
