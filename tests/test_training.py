@@ -1,6 +1,7 @@
 """The data pipeline, a tiny training run with checkpoint and resume, and the shipped weights."""
 
 import csv
+import os
 
 import numpy as np
 import pytest
@@ -199,9 +200,11 @@ def test_the_shipped_record_names_the_noise_of_the_training_pairs():
 
 
 def test_only_the_full_evaluation_writes_the_published_report():
+    from export.onnx_export import DEFAULT_OUTPUT
     from model.training.evaluate import PUBLISHED_REPORT, QUICK_REPORT, parse_args
 
     assert parse_args([]).out == PUBLISHED_REPORT
+    assert parse_args(["--model", os.path.relpath(DEFAULT_OUTPUT)]).out == PUBLISHED_REPORT  # the default, spelt out
     for partial in (["--limit", "100"], ["--sets", "jitter"], ["--no-baselines"], ["--shared-jitter"]):
         assert parse_args(partial).out == QUICK_REPORT, partial
     assert str(parse_args(["--limit", "5", "--out", "elsewhere"]).out) == "elsewhere"

@@ -271,9 +271,16 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
         parser.error(f"--limit must be 0 (every shape) or more, got {args.limit}")
     if args.out is None:
         defaults = vars(parser.parse_args([]))
-        full_run = all(value == defaults[name] for name, value in vars(args).items())
+        full_run = all(same_option(value, defaults[name]) for name, value in vars(args).items())
         args.out = PUBLISHED_REPORT if full_run else QUICK_REPORT
     return args
+
+
+def same_option(value, default) -> bool:
+    """Paths count as the same file however they are written (the default model given explicitly)."""
+    if isinstance(value, Path) and isinstance(default, Path):
+        return value.resolve() == default.resolve()
+    return value == default
 
 
 def main(argv: list[str] | None = None) -> dict:
