@@ -173,6 +173,13 @@ def crop_nearest(points: np.ndarray, anchor: np.ndarray, count: int) -> np.ndarr
     return points[order[:count]]
 
 
+def disjoint_halves(points: np.ndarray, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """Two random halves of a cloud without a common point: one surface sampled twice, as when a
+    scene is scanned again (the clouds a registration service gets, unlike the protocol's pairs)."""
+    order = rng.permutation(len(points))
+    return points[order[: len(points) // 2]], points[order[len(points) // 2 :]]
+
+
 # The network is scale-sensitive (kNN edges, descriptors). Its training pairs are 768-point crops
 # of unit-sphere shapes, whose largest distance from their own centroid has a median of 1.07
 # (5-95 %: 0.94-1.17, over 500 training pairs); scaling user clouds to that radius rather than

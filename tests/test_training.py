@@ -11,7 +11,7 @@ torch = pytest.importorskip("torch", reason="the training tests need torch")
 from scipy.spatial import cKDTree  # noqa: E402
 
 from export.onnx_export import DEFAULT_WEIGHTS  # noqa: E402
-from model.geometry import apply_transform, matrix_to_euler  # noqa: E402
+from model.geometry import apply_transform, disjoint_halves, matrix_to_euler  # noqa: E402
 from model.training.data import Protocol, RegistrationPairs, load_split, make_pair, synthetic_shape  # noqa: E402
 from model.training.train import main as train_main  # noqa: E402
 
@@ -92,6 +92,16 @@ def test_shared_jitter_keeps_exact_shared_points_off_the_shape(shapes):
         assert np.median(cKDTree(shapes[4].astype(np.float64)).query(pair["source"])[0]) > 0.005
     with pytest.raises(ValueError, match="jitter noise only"):
         Protocol(noise="outliers", shared_jitter=True)
+
+
+def test_disjoint_halves_split_a_cloud_without_a_common_point():
+    cloud = synthetic_shape(np.random.default_rng(5), num_points=1001)
+    first, second = disjoint_halves(cloud, np.random.default_rng(6))
+    assert (len(first), len(second)) == (500, 501)
+    assert not set(map(tuple, first)) & set(map(tuple, second))
+    np.testing.assert_array_equal(np.unique(np.concatenate([first, second]), axis=0), np.unique(cloud, axis=0))
+    again = disjoint_halves(cloud, np.random.default_rng(6))
+    np.testing.assert_array_equal(again[0], first)
 
 
 def test_training_jitter_sigma_reaches_the_pairs(shapes):
@@ -261,25 +271,30 @@ def shipped_model_errors(pairs: list[dict]) -> tuple[np.ndarray, np.ndarray]:
 def test_shipped_weights_register_generated_pairs():
     """Accuracy smoke test on 8 protocol pairs of synthetic shapes (needs no data).
 
-    Tolerance: every pair within 1 degree and 0.01 (unit-sphere units). The shipped weights were
-    measured at 0.27 degrees and 0.0033 at worst on these pairs: the shapes are not ModelNet's,
-    so this checks that the weights load and register, not the published accuracy
-    (docs/evaluation/).
+    Tolerance: 7 of the 8 pairs within 1 degree and 0.01 (unit-sphere units), and a median
+    rotation error below 0.5 degrees. Measured: 0.03-0.28 degrees and 0.0034 at worst on seven
+    pairs; the seventh shape, a nearly ellipsoidal blob, is off by 61 degrees (the clean-trained
+    weights: 0.08). The shipped network no longer keys on points shared exactly by both clouds,
+    and misses about 2 % of clean ModelNet pairs by more than 5 degrees (docs/evaluation/). The
+    shapes are not ModelNet's: this checks that the weights load and register, not the
+    published accuracy.
     """
     pairs = [
         make_pair(synthetic_shape(np.random.default_rng((7, i))), Protocol(), np.random.default_rng((8, i)))
         for i in range(8)
     ]
     rotation_deg, translation = shipped_model_errors(pairs)
-    assert rotation_deg.max() < 1.0, rotation_deg
-    assert translation.max() < 0.01, translation
+    registered = (rotation_deg < 1.0) & (translation < 0.01)
+    assert registered.sum() >= 7, (rotation_deg, translation)
+    assert np.median(rotation_deg) < 0.5, rotation_deg
 
 
 @pytest.mark.skipif(not DEFAULT_WEIGHTS.exists(), reason="no shipped weights in the checkout")
 def test_shipped_weights_register_modelnet_test_pairs():
     """8 protocol pairs of ModelNet10 test shapes (skipped without ../shared/data).
 
-    Tolerance: every pair within 0.5 degrees and 0.005; measured 0.08 degrees and 0.0007 at worst.
+    Tolerance: every pair within 2 degrees and 0.02, median rotation error below 0.3 degrees;
+    measured 0.05-0.33 degrees on seven pairs, 1.4 degrees and 0.015 on the first (a bathtub).
     """
     try:
         shapes = load_split("same")[:8]
@@ -287,8 +302,9 @@ def test_shipped_weights_register_modelnet_test_pairs():
         pytest.skip(str(error))
     pairs = [make_pair(shape, Protocol(), np.random.default_rng((21, i))) for i, shape in enumerate(shapes)]
     rotation_deg, translation = shipped_model_errors(pairs)
-    assert rotation_deg.max() < 0.5, rotation_deg
-    assert translation.max() < 0.005, translation
+    assert rotation_deg.max() < 2.0, rotation_deg
+    assert translation.max() < 0.02, translation
+    assert np.median(rotation_deg) < 0.3, rotation_deg
 
 
 def test_fine_tuning_starts_from_the_given_weights_on_noisy_pairs(tmp_path, shapes):
