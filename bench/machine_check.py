@@ -41,6 +41,17 @@ def example_feeds(model: ort.InferenceSession) -> dict[str, np.ndarray]:
     return {"source": clouds[0], "target": clouds[1]}
 
 
+def timed_model(model: ort.InferenceSession) -> dict:
+    """What was timed: the call's cost follows the graph (preset, EdgeConv neighbours), not the weights."""
+    metadata = dict(model.get_modelmeta().custom_metadata_map)
+    config = json.loads(metadata.get("config", "{}"))
+    return {
+        "version": metadata.get("weights_sha256", "")[:12] or "not recorded",
+        "preset": metadata.get("preset", "not recorded"),
+        "edgeconv_k": config.get("edgeconv_k"),
+    }
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--model", type=Path, default=DEFAULT_MODEL)
@@ -75,6 +86,7 @@ def main() -> int:
         "one_thread_ms_median": float(np.median(one_ms)),
         "speedup_median": float(np.median(ratio)),
         "share_second_cpu_missing": float(np.mean(ratio < 1.2)),  # 2 threads no faster than ~1
+        "model": timed_model(two),
         "samples": [(t, round(a, 1), round(b, 1)) for t, a, b in samples],
     }
     checks = json.loads(args.out.read_text()) if args.out.is_file() else []
