@@ -3,6 +3,7 @@
 python -m export                                   # shipped weights -> service/models/ifnet.onnx
 python -m export --weights runs/fast/checkpoint.pt --output /tmp/ifnet.onnx
 python -m export --iterations 6 --output /tmp/ifnet-6.onnx  # 3 time steps x 6 iterations
+python -m export --time-steps 2 --iterations 4 --output /tmp/ifnet-2x4.onnx
 """
 
 import argparse
@@ -39,19 +40,26 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
         help="blocks per time step in the exported graph (default: as trained); the block's weights are "
         "shared, so any count runs; measured effect: docs/training/experiments/README.md",
     )
+    parser.add_argument(
+        "--time-steps",
+        type=int,
+        default=None,
+        help="passes over the iterations, each fed back the last pass's target features (default: as trained)",
+    )
     parser.add_argument("--preset-name", default=None, help="recorded in the metadata (default: from the weights file)")
     parser.add_argument("--check-pairs", type=int, default=8, help="pairs compared between torch and ONNX Runtime")
     parser.add_argument("--rotation-tol", type=float, default=1e-3, help="max |R_onnx - R_torch| per entry")
     parser.add_argument("--angle-tol", type=float, default=0.01, help="max difference of rotation errors (deg)")
     args = parser.parse_args(argv)
-    if args.iterations is not None and args.iterations < 1:
-        parser.error(f"--iterations must be at least 1, got {args.iterations}")
+    for option, count in (("--iterations", args.iterations), ("--time-steps", args.time_steps)):
+        if count is not None and count < 1:
+            parser.error(f"{option} must be at least 1, got {count}")
     return args
 
 
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
-    model, weights_sha256 = load_checkpoint(args.weights, args.iterations)
+    model, weights_sha256 = load_checkpoint(args.weights, args.iterations, args.time_steps)
     preset_name = args.preset_name or torch.load(args.weights, map_location="cpu", weights_only=True).get(
         "preset", "custom"
     )

@@ -52,17 +52,18 @@ def file_sha256(path: Path) -> str:
     return hashlib.sha256(Path(path).read_bytes()).hexdigest()
 
 
-def load_checkpoint(path: Path, iterations: int | None = None) -> tuple[IFNet, str]:
+def load_checkpoint(path: Path, iterations: int | None = None, time_steps: int | None = None) -> tuple[IFNet, str]:
     """The model in eval mode from a training checkpoint or shipped weights, and the file's sha256.
 
-    `iterations` overrides the blocks per time step (`n_iters`) the weights were trained with:
-    every iteration runs the same shared block, so the weights run at any count, and each extra
-    iteration moves the source once more from the last estimate (cost grows linearly).
+    `iterations` and `time_steps` override the unroll the weights were trained with (`n_iters`
+    blocks per time step, `time_steps` passes with the target features fed back): every block
+    runs the same shared weights, so the weights run at any counts, and the cost grows with
+    their product.
     """
     state = torch.load(path, map_location="cpu", weights_only=True)
     config = IFNetConfig.from_dict(state["config"])
-    if iterations is not None:
-        config = replace(config, n_iters=iterations)  # IFNetConfig rejects a count below 1
+    unroll = {"n_iters": iterations, "time_steps": time_steps}
+    config = replace(config, **{k: v for k, v in unroll.items() if v is not None})  # rejects counts below 1
     model = IFNet(config)
     model.load_state_dict(state["model"])
     return model.eval(), file_sha256(path)

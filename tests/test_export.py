@@ -184,11 +184,15 @@ def test_more_iterations_run_the_same_block_longer():
 
 
 @pytest.mark.skipif(not DEFAULT_WEIGHTS.exists(), reason="no shipped weights in the checkout")
-def test_export_command_records_the_iteration_count(tmp_path):
-    from export.__main__ import main
+def test_export_command_records_the_unroll(tmp_path):
+    from export.__main__ import main, parse_args
 
     output = tmp_path / "ifnet-2.onnx"
-    assert main(["--iterations", "2", "--output", str(output), "--check-pairs", "2"]) == 0
+    assert main(["--iterations", "2", "--time-steps", "1", "--output", str(output), "--check-pairs", "2"]) == 0
     metadata = ort_session(output).get_modelmeta().custom_metadata_map
-    assert json.loads(metadata["config"])["n_iters"] == 2
+    config = json.loads(metadata["config"])
+    assert (config["n_iters"], config["time_steps"]) == (2, 1)
     assert metadata["weights_sha256"] == file_sha256(DEFAULT_WEIGHTS)
+    for option in ("--iterations", "--time-steps"):
+        with pytest.raises(SystemExit):
+            parse_args([option, "0"])
