@@ -49,17 +49,21 @@ def rescan_pair(scan: np.ndarray, rng: np.random.Generator, overlap: float) -> t
     return first, second
 
 
-def rotation_errors(engine: OnnxEngine, pairs, refine: bool) -> np.ndarray:
+def rotation_errors(engine: OnnxEngine, pairs) -> tuple[np.ndarray, np.ndarray]:
+    """Rotation errors (deg) of the network alone and after refinement, from one refined call per
+    pair: the refinement report keeps the network's transform."""
+
     async def predict(source: np.ndarray, target: np.ndarray) -> Prediction:
         rotation, translation = engine.run(source[None], target[None])
         return Prediction(rotation[0], translation[0])
 
-    params = RegistrationParams(num_points=engine.info.native_num_points, refine=RefineParams() if refine else None)
-    errors = []
+    params = RegistrationParams(num_points=engine.info.native_num_points, refine=RefineParams())
+    alone, refined = [], []
     for source, target, true_rotation in pairs:
         result = asyncio.run(register_clouds(source, target, params, predict, run_blocking=_inline))
-        errors.append(float(rotation_angle_deg(result.rotation, true_rotation)))
-    return np.array(errors)
+        alone.append(float(rotation_angle_deg(result.refinement.network_rotation, true_rotation)))
+        refined.append(float(rotation_angle_deg(result.rotation, true_rotation)))
+    return np.array(alone), np.array(refined)
 
 
 async def _inline(function, *args):
@@ -97,8 +101,7 @@ def main() -> None:
         print(f"{'scan':24s} {'pair':7s} {'points':>7s} {'network':>19s} {'refined':>19s}")
         summary: dict[str, list[np.ndarray]] = {"shared": [], "rescan": []}
         for (name, kind), scan_pairs in pairs.items():
-            alone = rotation_errors(engine, scan_pairs, refine=False)
-            refined = rotation_errors(engine, scan_pairs, refine=True)
+            alone, refined = rotation_errors(engine, scan_pairs)
             summary[kind].append(np.stack([alone, refined]))
             cells = [f"{np.median(e):7.3f} / {e.max():6.2f} ({(e > 5).sum()})" for e in (alone, refined)]
             print(f"{name:24s} {kind:7s} {len(scan_pairs[0][0]):7d} {cells[0]:>19s} {cells[1]:>19s}")
