@@ -5,6 +5,11 @@
 
 Prints a table and writes docs/benchmarks/model.{md,json}. Random weights time the same
 graph as trained ones. Peak RSS of the process is reported after each run.
+
+Both runtimes compute the same evaluation-mode model (BatchNorms folded, as exported) and are
+called in turn, round after round, so the machine's drifting speed (bench/machine_check.py)
+reaches both alike; a short pause before each call lets the other runtime's worker threads go
+idle first, since on 2 CPUs one runtime's spinning threads would slow the other's call.
 """
 
 import argparse
@@ -13,6 +18,7 @@ import resource
 import sys
 import tempfile
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -20,18 +26,32 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from export.onnx_export import DYNAMIC_AXES, RegistrationGraph, export_onnx, load_checkpoint, ort_session  # noqa: E402
+from export.onnx_export import (  # noqa: E402
+    DYNAMIC_AXES,
+    RegistrationGraph,
+    export_onnx,
+    fold_batch_norms,
+    load_checkpoint,
+    ort_session,
+)
 from model.ifnet import PRESETS, IFNet, preset  # noqa: E402
 
+PAUSE_S = 0.05
 
-def median_ms(run, repeats: int) -> float:
-    run()  # warm-up
-    times = []
-    for _ in range(repeats):
-        started = time.perf_counter()
+
+def interleaved_ms(runs: dict[str, Callable[[], object]], repeats: int) -> dict[str, float]:
+    """Median ms per call of each run, the runs called in turn (who goes first rotates)."""
+    names = list(runs)
+    for run in runs.values():  # warm-up
         run()
-        times.append(time.perf_counter() - started)
-    return 1000 * float(np.median(times))
+    times: dict[str, list[float]] = {name: [] for name in names}
+    for r in range(repeats):
+        for name in names[r % len(names) :] + names[: r % len(names)]:
+            time.sleep(PAUSE_S)
+            started = time.perf_counter()
+            runs[name]()
+            times[name].append(1000 * (time.perf_counter() - started))
+    return {name: float(np.median(t)) for name, t in times.items()}
 
 
 def train_step_seconds(model: IFNet, steps: int, n: int) -> float:
@@ -48,7 +68,7 @@ def train_step_seconds(model: IFNet, steps: int, n: int) -> float:
         loss.backward()
         optimizer.step()
 
-    seconds = median_ms(step, steps) / 1000
+    seconds = interleaved_ms({"step": step}, steps)["step"] / 1000
     model.eval()
     return seconds
 
@@ -91,18 +111,20 @@ def main() -> None:
             )
             size_mb = path.stat().st_size / 1e6
             session = ort_session(path, args.threads)
+            eager_model = fold_batch_norms(model)  # the arithmetic the ONNX graph runs
             step_s = train_step_seconds(model, args.train_steps, n0) if args.train_steps else float("nan")
             for n in args.points:
                 for batch in args.batches:
                     source = np.random.rand(batch, n, 3).astype(np.float32) - 0.5
                     target = np.random.rand(batch, n, 3).astype(np.float32) - 0.5
                     feeds = {"source": source, "target": target}
-                    ort_ms = median_ms(lambda s=session, f=feeds: s.run(None, f), args.repeats)
-                    eager_ms = float("nan")
+                    runs = {"ort": lambda s=session, f=feeds: s.run(None, f)}
                     if not args.skip_eager:
-                        with torch.no_grad():
-                            s, t = torch.from_numpy(source), torch.from_numpy(target)
-                            eager_ms = median_ms(lambda m=model, s=s, t=t: m(s, t), args.repeats)
+                        s, t = torch.from_numpy(source), torch.from_numpy(target)
+                        runs["eager"] = lambda m=eager_model, s=s, t=t: m(s, t)
+                    with torch.no_grad():
+                        ms = interleaved_ms(runs, args.repeats)
+                    ort_ms, eager_ms = ms["ort"], ms.get("eager", float("nan"))
                     row = {
                         "preset": name,
                         "parameters": model.num_parameters(),

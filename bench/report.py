@@ -160,10 +160,12 @@ def model_section(model: dict | None, plots: Path, lines: list[str]) -> None:
     rows = model["rows"]
     command = model.get("command") or "python bench/bench_model.py"
     lines += [
-        f"`{command}`: the weights given by `--weights`, exported to ONNX; both run on the same random unit-cube "
-        f"clouds with {model['threads']} threads; median of the repeats, per pair (a batch's time divided by its "
-        "size). Peak RSS is of the benchmark process, which holds torch, the model and ONNX Runtime together. Both "
-        "columns are timed in that one process; `bench/profile_model.py` and `bench/machine_check.py` time the same "
+        f"`{command}`: the weights given by `--weights`, exported to ONNX; both runtimes compute the same "
+        "evaluation-mode model (BatchNorms folded, as exported) on the same random unit-cube clouds with "
+        f"{model['threads']} threads, called in turn round after round with a short pause before each call; median "
+        "of the repeats, per pair (a batch's time divided by its size). Peak RSS is of the benchmark process, which "
+        "holds torch, the model and ONNX Runtime together. Both columns are timed in that one process; "
+        "`bench/profile_model.py` and `bench/machine_check.py` time the same "
         "ONNX Runtime call in processes without torch (sections below).",
         "",
         "| preset | N | batch | ORT ms/pair | eager ms/pair | ORT speed-up | peak RSS MB |",

@@ -6,6 +6,7 @@ The exported interface is the project's public contract:
 with target ~ source @ rotation^T + translation. Batch and both point counts are dynamic axes.
 """
 
+import copy
 import datetime as dt
 import hashlib
 import json
@@ -18,9 +19,10 @@ import onnx
 import onnxruntime as ort
 import torch
 from torch import Tensor, nn
+from torch.nn.utils.fusion import fuse_linear_bn_eval
 
 from model.geometry import rotation_angle_deg
-from model.ifnet import IFNet, IFNetConfig
+from model.ifnet import ChannelBatchNorm, IFNet, IFNetConfig, PointMLP
 
 OPSET = 17
 MODEL_NAME = "ifnet"
@@ -36,12 +38,36 @@ DYNAMIC_AXES = {
 }
 
 
+def fold_batch_norms(model: IFNet) -> IFNet:
+    """An evaluation-mode copy of model with every BatchNorm after a linear layer folded into it.
+
+    The same function with fewer operators: ONNX Runtime fuses a Conv's BatchNorm itself but not
+    these (they sit behind reshapes), and folding them made a model call ~7 % cheaper.
+    """
+    folded = copy.deepcopy(model).eval()
+    with torch.no_grad():
+        for mlp in (m for m in folded.modules() if isinstance(m, PointMLP)):
+            for i in range(len(mlp) - 1):
+                if isinstance(mlp[i], nn.Linear) and isinstance(mlp[i + 1], ChannelBatchNorm):
+                    mlp[i], mlp[i + 1] = fuse_linear_bn_eval(mlp[i], mlp[i + 1]), nn.Identity()
+        # The attention MLP normalises a sum of attn_in outputs (query - key + attn_in(pos)), and
+        # its bias enters that sum once, so the norm folds into attn_in itself.
+        attention = folded.block.feedback_transformer
+        attention.attn_in = fuse_linear_bn_eval(attention.attn_in, attention.attn_out[0])
+        attention.attn_out[0] = nn.Identity()
+    return folded
+
+
 class RegistrationGraph(nn.Module):
-    """IFNet reduced to the public contract: (source, target) -> (rotation, translation)."""
+    """IFNet reduced to the public contract: (source, target) -> (rotation, translation).
+
+    BatchNorms are folded (`fold_batch_norms`), so the graph always computes the evaluation-mode
+    model; the model passed in is left as it is.
+    """
 
     def __init__(self, model: IFNet):
         super().__init__()
-        self.model = model
+        self.model = fold_batch_norms(model)
 
     def forward(self, source: Tensor, target: Tensor) -> tuple[Tensor, Tensor]:
         out = self.model(source, target)
@@ -151,6 +177,7 @@ def metadata_for(model: IFNet, preset_name: str, weights_sha256: str) -> dict[st
         "model_name": MODEL_NAME,
         "preset": preset_name,
         "num_points": str(model.config.num_points),
+        "min_points": str(model.config.graph_k),
         "weights_sha256": weights_sha256,
         "opset": str(OPSET),
         "export_date": dt.datetime.now(dt.UTC).isoformat(timespec="seconds"),

@@ -19,6 +19,7 @@ from torch import Tensor, nn
 
 from model.ops import (
     compose,
+    fused_knn,
     gather_rows,
     identity_transform,
     knn,
@@ -54,6 +55,11 @@ class IFNetConfig:
             sizes = value if isinstance(value, (tuple, list)) else (value,)
             if isinstance(sizes[0], int) and min(sizes) < 1:
                 raise ValueError(f"IFNetConfig.{name} must be at least 1, got {value}")
+
+    @property
+    def graph_k(self) -> int:
+        """Width of each cloud's kNN graph, so also the fewest points per cloud the model runs on."""
+        return max(self.edgeconv_k, self.attention_k, self.score_k, 3)
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -155,15 +161,16 @@ class FeedbackTransformer(nn.Module):
     def forward(
         self,
         points: Tensor,
+        own_neighbours: Tensor,
         descriptor: Tensor,
         features: Tensor,
         other_points: Tensor,
         other_descriptor: Tensor,
         other_features: Tensor,
     ) -> Tensor:
-        # points [B, N, 3], descriptor [B, N, 14], features [B, N, C]; other_* over M points
-        fused_points = torch.cat([points, other_points], dim=1)  # [B, N+M, 3]
-        idx = knn(points, fused_points, self.k)  # [B, N, k]
+        # points [B, N, 3], own_neighbours [B, N, >= k], descriptor [B, N, 14], features [B, N, C];
+        # other_* over M points
+        idx = fused_knn(points, own_neighbours, other_points, self.k)  # [B, N, k] into the N+M fused points
         fused_descriptor = torch.cat([descriptor, other_descriptor], dim=1)
         fused_features = torch.cat([features, other_features], dim=1)  # [B, N+M, C]
 
@@ -229,6 +236,7 @@ class CloudGraph(NamedTuple):
     """A cloud's kNN graphs; a rigid motion leaves them unchanged, so they are built once."""
 
     edgeconv: Tensor  # [B, N, k1], self first
+    attention: Tensor  # [B, N, attention_k], self first
     score: Tensor  # [B, N, k2 - 1], self excluded
     nearest_two: Tensor  # [B, N, 2], self excluded
 
@@ -272,8 +280,8 @@ class FeedbackRegistrationBlock(nn.Module):
 
     def build_graph(self, points: Tensor) -> CloudGraph:
         c = self.config
-        idx = knn(points, points, max(c.edgeconv_k, c.score_k, 3))  # [B, N, k], self first
-        return CloudGraph(idx[..., : c.edgeconv_k], idx[..., 1 : c.score_k], idx[..., 1:3])
+        idx = knn(points, points, c.graph_k)  # [B, N, graph_k], self first
+        return CloudGraph(idx[..., : c.edgeconv_k], idx[..., : c.attention_k], idx[..., 1 : c.score_k], idx[..., 1:3])
 
     def encode_target(self, target: Tensor) -> TargetContext:
         graph = self.build_graph(target)
@@ -288,8 +296,9 @@ class FeedbackRegistrationBlock(nn.Module):
         src_low = self.edgeconv(source, source_graph.edgeconv)
         tgt_low = target.features if feedback is None else feedback
         attend = self.feedback_transformer
-        src_high = attend(source, src_descriptor, src_low, target.points, target.descriptor, tgt_low)
-        tgt_high = attend(target.points, target.descriptor, tgt_low, source, src_descriptor, src_high)
+        src_near, tgt_near = source_graph.attention, target.graph.attention
+        src_high = attend(source, src_near, src_descriptor, src_low, target.points, target.descriptor, tgt_low)
+        tgt_high = attend(target.points, tgt_near, target.descriptor, tgt_low, source, src_descriptor, src_high)
 
         matching = self.matching_matrix(src_high, tgt_high, source_graph.score, target.graph.score)
         pseudo_target = matching @ target.points  # [B, N, 3]

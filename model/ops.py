@@ -33,6 +33,21 @@ def knn(query: Tensor, reference: Tensor, k: int) -> Tensor:
     return pairwise_sq_distances(query, reference).topk(k, dim=-1, largest=False).indices
 
 
+def fused_knn(points: Tensor, own_neighbours: Tensor, other_points: Tensor, k: int) -> Tensor:
+    """knn(points, cat([points, other_points], 1), k) for a cloud whose own kNN is already known.
+
+    own_neighbours [B, N, >= k] are the cloud's neighbours among its own points, self first. A
+    rigid motion leaves them unchanged, so only the other cloud is searched here; the k nearest of
+    the union are the k nearest of the two candidate lists. Indices >= N are other_points'.
+    """
+    own = own_neighbours[..., :k]  # [B, N, k]
+    own_sq = (gather_rows(points, own) - points.unsqueeze(2)).square().sum(-1)
+    other = pairwise_sq_distances(points, other_points).topk(k, dim=-1, largest=False)
+    candidates = torch.cat([own, other.indices + points.shape[1]], dim=-1)  # [B, N, 2k]
+    nearest = torch.cat([own_sq, other.values], dim=-1).topk(k, dim=-1, largest=False).indices
+    return torch.gather(candidates, 2, nearest)
+
+
 def gather_rows(x: Tensor, idx: Tensor) -> Tensor:
     """Rows of x [B, M, C] picked by idx [B, ...] -> [B, ..., C], e.g. idx [B, N, k] -> [B, N, k, C].
 

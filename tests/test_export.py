@@ -31,10 +31,11 @@ from export.onnx_export import (  # noqa: E402
     compare_with_torch,
     export_onnx,
     file_sha256,
+    fold_batch_norms,
     load_checkpoint,
     ort_session,
 )
-from model.ifnet import IFNet, IFNetConfig, preset  # noqa: E402
+from model.ifnet import ChannelBatchNorm, IFNet, IFNetConfig, preset  # noqa: E402
 from model.training.data import evaluation_pairs  # noqa: E402
 
 SHIPPED = DEFAULT_WEIGHTS.exists() and DEFAULT_OUTPUT.exists()
@@ -45,7 +46,7 @@ class SingleBlock(torch.nn.Module):
 
     def __init__(self, model: IFNet, with_feedback: bool):
         super().__init__()
-        self.block = model.block
+        self.block = fold_batch_norms(model).block  # as RegistrationGraph exports it
         self.with_feedback = with_feedback
 
     def forward(self, source, target, feedback=None):
@@ -104,6 +105,29 @@ def test_each_block_matches_torch_on_the_same_inputs(tmp_path, batch):
         assert np.abs(trans_ort - translation.numpy()).max() <= 1e-4, f"block {index}"
 
 
+def test_folding_batch_norms_keeps_the_evaluation_model():
+    torch.manual_seed(3)
+    model = IFNet(preset("fast", n_iters=1, time_steps=1))
+    for norm in (m for m in model.modules() if isinstance(m, torch.nn.BatchNorm1d)):
+        # statistics and affine parameters far from the initial identity, so a wrong fold shows
+        norm.running_mean.uniform_(-1, 1)
+        norm.running_var.uniform_(0.5, 2)
+        norm.weight.data.uniform_(0.5, 2)
+        norm.bias.data.uniform_(-1, 1)
+    model.eval()
+    folded = fold_batch_norms(model)
+    # The overlap predictor's norms follow convolutions, which ONNX Runtime fuses itself.
+    assert not any(isinstance(m, ChannelBatchNorm) for m in folded.modules())
+    assert any(isinstance(m, ChannelBatchNorm) for m in model.modules()), "the original was changed"
+    source, target = stacked_pairs(2)
+    with torch.no_grad():
+        expected, actual = model(source, target).blocks[0], folded(source, target).blocks[0]
+    # Rotations are left out: with random weights the Procrustes step turns float noise into
+    # large differences; the shipped weights' per-block test checks them on the folded graph.
+    for name in ("target_features", "matching", "pseudo_target", "weights"):
+        torch.testing.assert_close(getattr(actual, name), getattr(expected, name), atol=1e-4, rtol=1e-4, msg=name)
+
+
 def test_one_iteration_one_step_random_model_end_to_end(tmp_path):
     torch.manual_seed(1)
     model = IFNet(preset("fast", n_iters=1, time_steps=1)).eval()
@@ -160,6 +184,13 @@ def test_committed_onnx_matches_committed_weights():
     model, _ = load_checkpoint(DEFAULT_WEIGHTS)
     assert IFNetConfig.from_dict(json.loads(metadata["config"])) == model.config
     assert int(metadata["num_points"]) == model.config.num_points
+    # The recorded minimum is the graph's: it runs at that many points per cloud and not below.
+    fewest = int(metadata["min_points"])
+    assert fewest == model.config.graph_k
+    clouds = np.random.default_rng(0).random((2, 1, fewest, 3), dtype=np.float32)
+    session.run(None, {"source": clouds[0], "target": clouds[1]})
+    with pytest.raises(Exception, match="TopK"):
+        session.run(None, {"source": clouds[0, :, 1:], "target": clouds[1, :, 1:]})
 
     report = compare_with_torch(session, model, evaluation_pairs(6, seed=11))
     assert report.max_rotation_entry <= 1e-3, report
