@@ -34,6 +34,7 @@ class TensorSpec:
 class ModelInfo:
     name: str
     native_num_points: int
+    min_num_points: int  # fewest points per cloud the graph runs on (its widest kNN)
     file_sha256: str
     path: str
     inputs: list[TensorSpec]
@@ -170,6 +171,21 @@ def _native_num_points(metadata: dict[str, str], path: Path) -> int:
     return count
 
 
+def _min_num_points(metadata: dict[str, str], path: Path, native: int) -> int:
+    value = metadata.get("min_points")
+    if value is None:
+        # Without the record, only the count the network was exported for is known to run.
+        logger.warning("model %s has no `min_points` metadata; giving it clouds of %d points or more", path, native)
+        return native
+    try:
+        count = int(value)
+        if count < 1:
+            raise ValueError
+    except ValueError:
+        raise ModelLoadError(f"model {path}: metadata min_points={value!r} is not a positive integer") from None
+    return count
+
+
 class OnnxEngine:
     """One ONNX Runtime session with graph optimisations on and intra-op threads sized to this process."""
 
@@ -212,9 +228,11 @@ class OnnxEngine:
             except json.JSONDecodeError:
                 logger.warning("model %s: metadata `config` is not JSON; ignoring it", path)
         by_name = {spec.name: spec for spec in _tensor_specs(inputs) + _tensor_specs(outputs)}
+        native_num_points = _native_num_points(metadata, path)
         self.info = ModelInfo(
             name=metadata.get("model_name", "ifnet"),
-            native_num_points=_native_num_points(metadata, path),
+            native_num_points=native_num_points,
+            min_num_points=_min_num_points(metadata, path, native_num_points),
             file_sha256=file_sha256(path),
             path=str(path),
             inputs=[by_name[name] for name in REQUIRED_INPUTS],

@@ -79,6 +79,11 @@ class ServiceState:
         limit = self.settings.max_network_points
         if options.max_points is not None and options.max_points > limit:
             raise InvalidInput("max_points", f"is {options.max_points}, more than this service's limit of {limit}")
+        fewest = self.model.min_num_points
+        if options.max_points is not None and options.max_points < fewest:
+            raise InvalidInput(
+                "max_points", f"is {options.max_points}; this model needs at least {fewest} points per cloud"
+            )
         refine = options.refine
         return RegistrationParams(
             num_points=options.max_points or self.model.native_num_points,

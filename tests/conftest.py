@@ -85,6 +85,7 @@ def build_tiny_model(path: Path, with_metadata: bool = True) -> Path:
                 "model_name": "ifnet",
                 "preset": "tiny-test",
                 "num_points": str(TINY_MODEL_POINTS),
+                "min_points": "16",
                 "weights_sha256": "0" * 64,
                 "opset": "17",
                 "export_date": "2025-01-01",

@@ -62,6 +62,7 @@ def test_engine_threads_follow_the_usable_cpus_unless_set(tiny_model):
 def test_metadata_is_read(tiny_model):
     info = OnnxEngine(tiny_model).info
     assert (info.name, info.preset, info.native_num_points, info.opset) == ("ifnet", "tiny-test", 64, "17")
+    assert info.min_num_points == 16
     assert info.version == "0" * 12 and info.config == {"num_points": 64} and len(info.file_sha256) == 64
     assert [spec.name for spec in info.inputs] == ["source", "target"]
     assert [spec.datatype for spec in info.outputs] == ["FP32", "FP32"]
@@ -72,8 +73,9 @@ def test_missing_metadata_falls_back_to_768_points_with_a_warning(tmp_path, capl
     with caplog.at_level(logging.WARNING, logger="service.engine"):
         info = OnnxEngine(path).info
     assert info.native_num_points == 768 and info.name == "ifnet" and info.weights_sha256 is None
+    assert info.min_num_points == 768, "without the record only the native count is known to run"
     assert info.version == info.file_sha256[:12]
-    assert "no `num_points` metadata" in caplog.text
+    assert "no `num_points` metadata" in caplog.text and "no `min_points` metadata" in caplog.text
 
 
 def test_a_missing_model_file_fails_with_its_path(tmp_path):
