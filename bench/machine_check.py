@@ -12,6 +12,7 @@ Appends to docs/benchmarks/machine.json (read by bench/report.py).
 """
 
 import argparse
+import hashlib
 import json
 import os
 import sys
@@ -41,14 +42,16 @@ def example_feeds(model: ort.InferenceSession) -> dict[str, np.ndarray]:
     return {"source": clouds[0], "target": clouds[1]}
 
 
-def timed_model(model: ort.InferenceSession) -> dict:
-    """What was timed: the call's cost follows the graph (preset, EdgeConv neighbours), not the weights."""
+def timed_model(model: ort.InferenceSession, path: Path) -> dict:
+    """What was timed: the call's cost follows the graph (preset, EdgeConv neighbours, how it was
+    exported), not the weights, so the ONNX file's own hash is recorded beside the weights'."""
     metadata = dict(model.get_modelmeta().custom_metadata_map)
     config = json.loads(metadata.get("config", "{}"))
     return {
         "version": metadata.get("weights_sha256", "")[:12] or "not recorded",
         "preset": metadata.get("preset", "not recorded"),
         "edgeconv_k": config.get("edgeconv_k"),
+        "file": hashlib.sha256(path.read_bytes()).hexdigest()[:12],
     }
 
 
@@ -86,7 +89,7 @@ def main() -> int:
         "one_thread_ms_median": float(np.median(one_ms)),
         "speedup_median": float(np.median(ratio)),
         "share_second_cpu_missing": float(np.mean(ratio < 1.2)),  # 2 threads no faster than ~1
-        "model": timed_model(two),
+        "model": timed_model(two, args.model),
         "samples": [(t, round(a, 1), round(b, 1)) for t, a, b in samples],
     }
     checks = json.loads(args.out.read_text()) if args.out.is_file() else []

@@ -579,7 +579,9 @@ def machine_section(checks: list[dict] | None, lines: list[str]) -> None:
         "",
         "Rows without a recorded model timed the `fast` preset's 5-neighbour EdgeConv graph, the served graph "
         "until 2026-12-02 10:47 UTC, when the shipped network's 16-neighbour graph (1.09-1.26x as long per call) "
-        "replaced it.",
+        "replaced it. Rows without a file hash timed an export from before 2026-12-02 13:29 UTC, except the three "
+        "of 13:36-13:50 UTC that day: those timed the export made then, which folds BatchNorms and searches only "
+        "the other cloud in the attention's kNN (within this machine's noise of the earlier export per call).",
         "",
     ]
 
@@ -588,7 +590,8 @@ def timed_model(check: dict) -> str:
     model = check.get("model")
     if model is None:
         return "not recorded"
-    return f"`{model['version']}` ({model['preset']}, EdgeConv k {model['edgeconv_k']})"
+    exported = f"; file `{model['file']}`" if "file" in model else ""
+    return f"`{model['version']}` ({model['preset']}, EdgeConv k {model['edgeconv_k']}{exported})"
 
 
 def machine(service: dict | None, overload: dict | None) -> str:

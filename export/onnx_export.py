@@ -42,7 +42,8 @@ def fold_batch_norms(model: IFNet) -> IFNet:
     """An evaluation-mode copy of model with every BatchNorm after a linear layer folded into it.
 
     The same function with fewer operators: ONNX Runtime fuses a Conv's BatchNorm itself but not
-    these (they sit behind reshapes), and folding them made a model call ~7 % cheaper.
+    these (they sit behind reshapes). On the shipped network the graph has 22 % fewer nodes and its
+    session starts in ~1.35 s instead of ~1.9 s; a call's time changed within this machine's noise.
     """
     folded = copy.deepcopy(model).eval()
     with torch.no_grad():
