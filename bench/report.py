@@ -571,9 +571,9 @@ def machine_section(checks: list[dict] | None, lines: list[str]) -> None:
     ]
     for c in checks:
         lines.append(
-            f"| {c['label']} | {c['when']} | {timed_model(c)} | {c['pairs']} | {fmt(c['two_threads_ms_median'], 1)} | "
-            f"{fmt(c['one_thread_ms_median'], 1)} | {fmt(c['speedup_median'], 2)}x | "
-            f"{c['share_second_cpu_missing']:.0%} |"
+            f"| {c['label']} | {c['when']} | {timed_model_label(c)} | {c['pairs']} | "
+            f"{fmt(c['two_threads_ms_median'], 1)} | {fmt(c['one_thread_ms_median'], 1)} | "
+            f"{fmt(c['speedup_median'], 2)}x | {c['share_second_cpu_missing']:.0%} |"
         )
     lines += [
         "",
@@ -586,7 +586,7 @@ def machine_section(checks: list[dict] | None, lines: list[str]) -> None:
     ]
 
 
-def timed_model(check: dict) -> str:
+def timed_model_label(check: dict) -> str:
     model = check.get("model")
     if model is None:
         return "not recorded"
