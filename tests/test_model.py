@@ -218,6 +218,8 @@ def test_teacher_consistency_measures_each_blocks_distance_from_the_taught_pose(
     assert expected.item() > 0.05
     torch.testing.assert_close(teacher_consistency_loss(output, taught_r, taught_t), expected)
     assert teacher_consistency_loss(output, r2 @ r1, t2).item() > expected.item()  # a wrong taught pose
+    # Only the second block, which finishes the taught pose: nothing left to pull.
+    assert teacher_consistency_loss(output, taught_r, taught_t, blocks=slice(1, None, 2)).item() < 1e-6
 
 
 @pytest.mark.slow

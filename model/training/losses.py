@@ -75,17 +75,20 @@ def pseudo_consistency_loss(block: BlockOutput, keypoint_idx: Tensor) -> Tensor:
     return -torch.log(rows.amax(dim=-1) + 1e-15).mean(-1)
 
 
-def teacher_consistency_loss(output: IFNetOutput, rotation: Tensor, translation: Tensor) -> Tensor:
+def teacher_consistency_loss(
+    output: IFNetOutput, rotation: Tensor, translation: Tensor, blocks: slice = slice(None)
+) -> Tensor:
     """Mean distance between the source as each block leaves it and as a teacher's (R, t) moves it.
 
     The teacher's (R, t) [B, 3, 3], [B, 3] is a trained network's estimate on the pair before its
     noise, not the true pose: a registration signal on noisy pairs, whose clouds share no exact
-    points for the paper's losses to lock onto. Averaged over blocks, points and batch.
+    points for the paper's losses to lock onto. Averaged over the chosen blocks (all by default;
+    `slice(n_iters - 1, None, n_iters)` takes each time step's finished estimate), points and batch.
     """
     taught = transform_points(output.blocks[0].source, rotation, translation)  # [B, N, 3]
     distances = [
         (transform_points(block.source, block.rotation, block.translation) - taught).norm(dim=-1).mean()
-        for block in output.blocks
+        for block in output.blocks[blocks]
     ]
     return torch.stack(distances).mean()
 

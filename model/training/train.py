@@ -104,6 +104,12 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
         default=1000.0,
         help="weight of the teacher consistency loss (its gradient is ~1/100 of the neighbourhood loss's)",
     )
+    parser.add_argument(
+        "--teacher-blocks",
+        choices=["every", "last"],
+        default="every",
+        help="blocks the teacher pulls: every block, or each time step's last (its finished estimate), for experiments",
+    )
     parser.add_argument("--init-weights", type=Path, help="start from these weights (fine-tuning) instead of random")
     return parser.parse_args(argv)
 
@@ -250,6 +256,8 @@ def train(args: argparse.Namespace) -> Path:
 
     model = IFNet(config).to(args.device)
     teacher = load_teacher(args.teacher, args.device) if args.teacher else None
+    n = config.n_iters
+    teacher_blocks = slice(n - 1, None, n) if args.teacher_blocks == "last" else slice(None)
     optimizer = torch.optim.Adam(model.parameters(), lr=args.lr)
     step, seconds_before = 0, 0.0
     if checkpoint_path.exists():
@@ -299,7 +307,9 @@ def train(args: argparse.Namespace) -> Path:
                 objective = losses.weighted(args.global_weight)
                 taught = torch.zeros(())
                 if teacher is not None:
-                    taught = teacher_consistency_loss(output, *taught_transform(teacher, batch, args.device))
+                    taught = teacher_consistency_loss(
+                        output, *taught_transform(teacher, batch, args.device), teacher_blocks
+                    )
                     objective = objective + args.teacher_weight * taught
                 optimizer.zero_grad(set_to_none=True)
                 objective.backward()
