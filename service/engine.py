@@ -155,34 +155,18 @@ def _tensor_specs(nodes) -> list[TensorSpec]:
     ]
 
 
-def _native_num_points(metadata: dict[str, str], path: Path) -> int:
-    value = metadata.get("num_points")
+def _metadata_count(metadata: dict[str, str], key: str, path: Path, missing: int, consequence: str) -> int:
+    """A positive integer from the export's metadata; `missing` (with a warning) where it is absent."""
+    value = metadata.get(key)
     if value is None:
-        logger.warning(
-            "model %s has no `num_points` metadata; resampling clouds to %d points", path, DEFAULT_NATIVE_POINTS
-        )
-        return DEFAULT_NATIVE_POINTS
+        logger.warning("model %s has no `%s` metadata; %s %d points", path, key, consequence, missing)
+        return missing
     try:
         count = int(value)
         if count < 1:
             raise ValueError
     except ValueError:
-        raise ModelLoadError(f"model {path}: metadata num_points={value!r} is not a positive integer") from None
-    return count
-
-
-def _min_num_points(metadata: dict[str, str], path: Path, native: int) -> int:
-    value = metadata.get("min_points")
-    if value is None:
-        # Without the record, only the count the network was exported for is known to run.
-        logger.warning("model %s has no `min_points` metadata; giving it clouds of %d points or more", path, native)
-        return native
-    try:
-        count = int(value)
-        if count < 1:
-            raise ValueError
-    except ValueError:
-        raise ModelLoadError(f"model {path}: metadata min_points={value!r} is not a positive integer") from None
+        raise ModelLoadError(f"model {path}: metadata {key}={value!r} is not a positive integer") from None
     return count
 
 
@@ -228,11 +212,13 @@ class OnnxEngine:
             except json.JSONDecodeError:
                 logger.warning("model %s: metadata `config` is not JSON; ignoring it", path)
         by_name = {spec.name: spec for spec in _tensor_specs(inputs) + _tensor_specs(outputs)}
-        native_num_points = _native_num_points(metadata, path)
+        native = _metadata_count(metadata, "num_points", path, DEFAULT_NATIVE_POINTS, "resampling clouds to")
+        # Without the record, only the count the network was exported for is known to run.
+        fewest = _metadata_count(metadata, "min_points", path, native, "giving it clouds of at least")
         self.info = ModelInfo(
             name=metadata.get("model_name", "ifnet"),
-            native_num_points=native_num_points,
-            min_num_points=_min_num_points(metadata, path, native_num_points),
+            native_num_points=native,
+            min_num_points=fewest,
             file_sha256=file_sha256(path),
             path=str(path),
             inputs=[by_name[name] for name in REQUIRED_INPUTS],

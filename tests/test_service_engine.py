@@ -78,6 +78,17 @@ def test_missing_metadata_falls_back_to_768_points_with_a_warning(tmp_path, capl
     assert "no `num_points` metadata" in caplog.text and "no `min_points` metadata" in caplog.text
 
 
+@pytest.mark.parametrize(("key", "value"), [("num_points", "many"), ("min_points", "0")])
+def test_a_bad_point_count_in_the_metadata_fails_loading(tmp_path, tiny_model_builder, key, value):
+    onnx = pytest.importorskip("onnx")
+    path = tiny_model_builder(tmp_path / "bad.onnx")
+    model = onnx.load(str(path))
+    next(prop for prop in model.metadata_props if prop.key == key).value = value
+    onnx.save(model, str(path))
+    with pytest.raises(ModelLoadError, match=rf"metadata {key}='{value}' is not a positive integer"):
+        OnnxEngine(path)
+
+
 def test_a_missing_model_file_fails_with_its_path(tmp_path):
     with pytest.raises(ModelLoadError, match=r"nowhere\.onnx does not exist: set IFNET_MODEL_PATH"):
         OnnxEngine(tmp_path / "nowhere.onnx")
