@@ -12,7 +12,6 @@ Appends to docs/benchmarks/machine.json (read by bench/report.py).
 """
 
 import argparse
-import hashlib
 import json
 import os
 import sys
@@ -24,6 +23,10 @@ import numpy as np
 import onnxruntime as ort
 
 ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from service.engine import file_sha256  # noqa: E402
+
 DEFAULT_MODEL = ROOT / "service" / "models" / "ifnet.onnx"
 
 
@@ -51,7 +54,7 @@ def timed_model(model: ort.InferenceSession, path: Path) -> dict:
         "version": metadata.get("weights_sha256", "")[:12] or "not recorded",
         "preset": metadata.get("preset", "not recorded"),
         "edgeconv_k": config.get("edgeconv_k"),
-        "file": hashlib.sha256(path.read_bytes()).hexdigest()[:12],
+        "file": file_sha256(path)[:12],
     }
 
 
