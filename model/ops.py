@@ -25,26 +25,26 @@ def pairwise_distances(a: Tensor, b: Tensor) -> Tensor:
     return torch.sqrt(pairwise_sq_distances(a, b) + _TINY)
 
 
-def knn(query: Tensor, reference: Tensor, k: int) -> Tensor:
-    """Indices [B, N, k] of the k reference points nearest to each query point, nearest first.
+def knn(query: Tensor, reference: Tensor, k: int) -> tuple[Tensor, Tensor]:
+    """The k reference points nearest to each query point, nearest first: (squared distances
+    [B, N, k], indices [B, N, k]).
 
     When query is reference, position 0 is the point itself (given no duplicate points).
     """
-    return pairwise_sq_distances(query, reference).topk(k, dim=-1, largest=False).indices
+    return pairwise_sq_distances(query, reference).topk(k, dim=-1, largest=False)
 
 
-def fused_knn(points: Tensor, own_neighbours: Tensor, other_points: Tensor, k: int) -> Tensor:
-    """knn(points, cat([points, other_points], 1), k) for a cloud whose own kNN is already known.
+def fused_knn(points: Tensor, own_neighbours: Tensor, own_sq_distances: Tensor, other_points: Tensor, k: int) -> Tensor:
+    """knn(points, cat([points, other_points], 1), k) indices for a cloud whose own kNN is known.
 
-    own_neighbours [B, N, >= k] are the cloud's neighbours among its own points, self first. A
-    rigid motion leaves them unchanged, so only the other cloud is searched here; the k nearest of
-    the union are the k nearest of the two candidate lists. Indices >= N are other_points'.
+    own_neighbours [B, N, >= k] are the cloud's neighbours among its own points, self first, at
+    own_sq_distances. A rigid motion leaves both unchanged, so only the other cloud is searched
+    here; the k nearest of the union are the k nearest of the two candidate lists. Indices >= N
+    are other_points'.
     """
-    own = own_neighbours[..., :k]  # [B, N, k]
-    own_sq = (gather_rows(points, own) - points.unsqueeze(2)).square().sum(-1)
     other = pairwise_sq_distances(points, other_points).topk(k, dim=-1, largest=False)
-    candidates = torch.cat([own, other.indices + points.shape[1]], dim=-1)  # [B, N, 2k]
-    nearest = torch.cat([own_sq, other.values], dim=-1).topk(k, dim=-1, largest=False).indices
+    candidates = torch.cat([own_neighbours[..., :k], other.indices + points.shape[1]], dim=-1)  # [B, N, 2k]
+    nearest = torch.cat([own_sq_distances[..., :k], other.values], dim=-1).topk(k, dim=-1, largest=False).indices
     return torch.gather(candidates, 2, nearest)
 
 

@@ -44,16 +44,16 @@ def test_gather_rows_picks_each_batch_items_own_rows():
 def test_fused_knn_is_knn_over_both_clouds_and_survives_a_rigid_motion():
     g = torch.Generator().manual_seed(2)
     points, other = torch.rand(2, 200, 3, generator=g), torch.rand(2, 150, 3, generator=g)
-    own = knn(points, points, 12)  # the graph is built wider than the attention needs
-    expected = knn(points, torch.cat([points, other], 1), 8).sort(-1).values
-    assert torch.equal(fused_knn(points, own, other, 8).sort(-1).values, expected)
+    own_sq, own = knn(points, points, 12)  # the graph is built wider than the attention needs
+    expected = knn(points, torch.cat([points, other], 1), 8).indices.sort(-1).values
+    assert torch.equal(fused_knn(points, own, own_sq, other, 8).sort(-1).values, expected)
     # own neighbours found before a rigid motion still hold after it (the source moves every block)
     angle = torch.tensor(0.7)
     c, s = torch.cos(angle), torch.sin(angle)
     rotation = torch.stack([torch.stack([c, -s, 0 * c]), torch.stack([s, c, 0 * c]), torch.tensor([0.0, 0, 1])])
     moved = transform_points(points, rotation.expand(2, 3, 3), torch.tensor([[0.3, -0.2, 0.1]] * 2))
-    expected = knn(moved, torch.cat([moved, other], 1), 8).sort(-1).values
-    assert torch.equal(fused_knn(moved, own, other, 8).sort(-1).values, expected)
+    expected = knn(moved, torch.cat([moved, other], 1), 8).indices.sort(-1).values
+    assert torch.equal(fused_knn(moved, own, own_sq, other, 8).sort(-1).values, expected)
 
 
 def test_neighbourhood_sum_equals_adjacency_products():
