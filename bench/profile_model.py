@@ -13,7 +13,6 @@ Writes docs/benchmarks/profile.json (read by bench/report.py).
 """
 
 import argparse
-import hashlib
 import json
 import re
 import sys
@@ -26,6 +25,10 @@ import numpy as np
 import onnxruntime as ort
 
 ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from service.engine import file_sha256  # noqa: E402
+
 DEFAULT_MODEL = ROOT / "service" / "models" / "ifnet.onnx"
 
 BLOCK_TYPES = [
@@ -117,7 +120,7 @@ def main() -> int:
     metadata = dict(plain.get_modelmeta().custom_metadata_map)
     record = {
         "command": "python bench/profile_model.py " + " ".join(sys.argv[1:]),
-        "model_version": (metadata.get("weights_sha256") or hashlib.sha256(args.model.read_bytes()).hexdigest())[:12],
+        "model_version": (metadata.get("weights_sha256") or file_sha256(args.model))[:12],
         "preset": metadata.get("preset"),
         "model": str(args.model.relative_to(ROOT) if args.model.is_relative_to(ROOT) else args.model),
         "batch": args.batch,

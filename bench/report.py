@@ -22,6 +22,7 @@ from datetime import UTC, datetime
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
 
 GOAL_P50_MS = 100.0
 GOAL_ORT_SPEEDUP = 2.0
@@ -518,9 +519,9 @@ def reliability_section(lines: list[str]) -> None:
 
 def versions_section(model, profile, service, overload, lines: list[str]) -> None:
     """Which weights each result file measured, so that a mix of models shows."""
-    import hashlib
-
     import onnxruntime as ort
+
+    from service.engine import file_sha256
 
     shipped = ROOT / "service" / "models" / "ifnet.onnx"
     found: dict[str, str] = {}
@@ -529,13 +530,13 @@ def versions_section(model, profile, service, overload, lines: list[str]) -> Non
         options.log_severity_level = 3
         metadata = ort.InferenceSession(str(shipped), options, providers=["CPUExecutionProvider"]).get_modelmeta()
         weights = metadata.custom_metadata_map.get("weights_sha256")
-        found["`service/models/ifnet.onnx` now"] = (weights or hashlib.sha256(shipped.read_bytes()).hexdigest())[:12]
+        found["`service/models/ifnet.onnx` now"] = (weights or file_sha256(shipped))[:12]
     if model is not None:
         command = model.get("command") or ""
         parts = command.split()
         if "--weights" in parts and (ROOT / parts[parts.index("--weights") + 1]).is_file():
             path = ROOT / parts[parts.index("--weights") + 1]
-            found["bench_model.py (its --weights file now)"] = hashlib.sha256(path.read_bytes()).hexdigest()[:12]
+            found["bench_model.py (its --weights file now)"] = file_sha256(path)[:12]
         else:
             found["bench_model.py"] = "random weights"
     if profile is not None:

@@ -8,7 +8,6 @@ with target ~ source @ rotation^T + translation. Batch and both point counts are
 
 import copy
 import datetime as dt
-import hashlib
 import json
 import time
 from dataclasses import dataclass, replace
@@ -23,6 +22,7 @@ from torch.nn.utils.fusion import fuse_linear_bn_eval
 
 from model.geometry import rotation_angle_deg
 from model.ifnet import ChannelBatchNorm, IFNet, IFNetConfig, PointMLP
+from service.engine import file_sha256
 
 OPSET = 17
 MODEL_NAME = "ifnet"
@@ -73,10 +73,6 @@ class RegistrationGraph(nn.Module):
     def forward(self, source: Tensor, target: Tensor) -> tuple[Tensor, Tensor]:
         out = self.model(source, target)
         return out.rotation, out.translation
-
-
-def file_sha256(path: Path) -> str:
-    return hashlib.sha256(Path(path).read_bytes()).hexdigest()
 
 
 def load_checkpoint(path: Path, iterations: int | None = None, time_steps: int | None = None) -> tuple[IFNet, str]:

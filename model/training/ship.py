@@ -16,7 +16,8 @@ from pathlib import Path
 
 import torch
 
-from export.onnx_export import DEFAULT_WEIGHTS, file_sha256
+from export.onnx_export import DEFAULT_WEIGHTS
+from service.engine import file_sha256
 
 TRAINING_DATA = "ModelNet10 train split (../shared/data/modelnet10_train.npz), last 64 shapes held out for validation"
 
