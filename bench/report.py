@@ -582,9 +582,17 @@ def machine_section(checks: list[dict] | None, lines: list[str]) -> None:
         "until 2026-12-02 10:47 UTC, when the shipped network's 16-neighbour graph (1.09-1.26x as long per call) "
         "replaced it. Rows without a file hash timed an export from before 2026-12-02 13:29 UTC, except the three "
         "of 13:36-13:50 UTC that day: those timed the export made then, which folds BatchNorms and searches only "
-        "the other cloud in the attention's kNN (within this machine's noise of the earlier export per call).",
+        "the other cloud in the attention's kNN (within this machine's noise of the earlier export per call). "
+        f"The export shipped now is file `{shipped_file_hash()}`.",
         "",
     ]
+
+
+def shipped_file_hash() -> str:
+    from service.engine import file_sha256
+
+    shipped = ROOT / "service" / "models" / "ifnet.onnx"
+    return file_sha256(shipped)[:12] if shipped.is_file() else "missing"
 
 
 def timed_model_label(check: dict) -> str:
