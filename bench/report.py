@@ -24,6 +24,10 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from service.engine import file_sha256  # noqa: E402
+
+SHIPPED_MODEL = ROOT / "service" / "models" / "ifnet.onnx"
+
 GOAL_P50_MS = 100.0
 GOAL_ORT_SPEEDUP = 2.0
 GOAL_SCALING = 1.5
@@ -521,16 +525,13 @@ def versions_section(model, profile, service, overload, lines: list[str]) -> Non
     """Which weights each result file measured, so that a mix of models shows."""
     import onnxruntime as ort
 
-    from service.engine import file_sha256
-
-    shipped = ROOT / "service" / "models" / "ifnet.onnx"
     found: dict[str, str] = {}
-    if shipped.is_file():
+    if SHIPPED_MODEL.is_file():
         options = ort.SessionOptions()
         options.log_severity_level = 3
-        metadata = ort.InferenceSession(str(shipped), options, providers=["CPUExecutionProvider"]).get_modelmeta()
+        metadata = ort.InferenceSession(str(SHIPPED_MODEL), options, providers=["CPUExecutionProvider"]).get_modelmeta()
         weights = metadata.custom_metadata_map.get("weights_sha256")
-        found["`service/models/ifnet.onnx` now"] = (weights or file_sha256(shipped))[:12]
+        found["`service/models/ifnet.onnx` now"] = (weights or file_sha256(SHIPPED_MODEL))[:12]
     if model is not None:
         command = model.get("command") or ""
         parts = command.split()
@@ -589,10 +590,7 @@ def machine_section(checks: list[dict] | None, lines: list[str]) -> None:
 
 
 def shipped_file_hash() -> str:
-    from service.engine import file_sha256
-
-    shipped = ROOT / "service" / "models" / "ifnet.onnx"
-    return file_sha256(shipped)[:12] if shipped.is_file() else "missing"
+    return file_sha256(SHIPPED_MODEL)[:12] if SHIPPED_MODEL.is_file() else "missing"
 
 
 def timed_model_label(check: dict) -> str:

@@ -303,9 +303,12 @@ class FeedbackRegistrationBlock(nn.Module):
     def build_graph(self, points: Tensor) -> CloudGraph:
         c = self.config
         sq_distances, idx = knn(points, points, c.graph_k)  # [B, N, graph_k] each, self first
-        near = idx[..., : c.attention_k]
         return CloudGraph(
-            idx[..., : c.edgeconv_k], near, sq_distances[..., : c.attention_k], idx[..., 1 : c.score_k], idx[..., 1:3]
+            idx[..., : c.edgeconv_k],
+            idx[..., : c.attention_k],
+            sq_distances[..., : c.attention_k],
+            idx[..., 1 : c.score_k],
+            idx[..., 1:3],
         )
 
     def encode_target(self, target: Tensor) -> TargetContext:

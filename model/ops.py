@@ -42,9 +42,9 @@ def fused_knn(points: Tensor, own_neighbours: Tensor, own_sq_distances: Tensor, 
     here; the k nearest of the union are the k nearest of the two candidate lists. Indices >= N
     are other_points'.
     """
-    other = pairwise_sq_distances(points, other_points).topk(k, dim=-1, largest=False)
-    candidates = torch.cat([own_neighbours[..., :k], other.indices + points.shape[1]], dim=-1)  # [B, N, 2k]
-    nearest = torch.cat([own_sq_distances[..., :k], other.values], dim=-1).topk(k, dim=-1, largest=False).indices
+    other_sq_distances, other = knn(points, other_points, k)
+    candidates = torch.cat([own_neighbours[..., :k], other + points.shape[1]], dim=-1)  # [B, N, 2k]
+    nearest = torch.cat([own_sq_distances[..., :k], other_sq_distances], dim=-1).topk(k, dim=-1, largest=False).indices
     return torch.gather(candidates, 2, nearest)
 
 
