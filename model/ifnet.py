@@ -174,7 +174,8 @@ class FeedbackTransformer(nn.Module):
         self.k = config.attention_k
         self.pos_mlp = PointMLP([14, config.pos_hidden, c], final_activation=False, bias=True)
         # attn_in is linear, so on (f_i - f_j + pos) it splits into per-point terms computed
-        # before the neighbour gather (exact, and k times cheaper) plus a per-neighbour pos term.
+        # before the neighbour gather (exact, and k times cheaper) plus a per-neighbour pos term,
+        # which goes through attn_in and pos_mlp's last (linear) layer as one product of the two.
         self.attn_in = nn.Linear(c, config.attention_hidden)
         self.attn_out = nn.Sequential(
             ChannelBatchNorm(config.attention_hidden),
@@ -197,11 +198,18 @@ class FeedbackTransformer(nn.Module):
         fused_descriptor = torch.cat([descriptor, other_descriptor], dim=1)
         fused_features = torch.cat([features, other_features], dim=1)  # [B, N+M, C]
 
-        pos = self.pos_mlp(descriptor.unsqueeze(2) - gather_rows(fused_descriptor, idx))
-        values = gather_rows(fused_features, idx) + pos  # [B, N, k, C]
+        *hidden_layers, pos_out = self.pos_mlp  # pos_out is linear
+        hidden = descriptor.unsqueeze(2) - gather_rows(fused_descriptor, idx)  # [B, N, k, 14]
+        for layer in hidden_layers:
+            hidden = layer(hidden)  # -> [B, N, k, P]
+        # pos = W_p hidden + b_p and attn_in(pos) = (W_a W_p) hidden + attn_in(b_p): one layer
+        # instead of two on the [B, N, k, .] rows, and every bias added to per-point rows before
+        # the gather rather than to the k times larger neighbour rows after it.
+        values = gather_rows(fused_features + pos_out.bias, idx) + F.linear(hidden, pos_out.weight)  # [B, N, k, C]
         projected = F.linear(fused_features, self.attn_in.weight)  # [B, N+M, H], no bias
-        query = projected[:, : points.shape[1]].unsqueeze(2)  # [B, N, 1, H]
-        logits = self.attn_out(query - gather_rows(projected, idx) + self.attn_in(pos))
+        query = projected[:, : points.shape[1]] + self.attn_in(pos_out.bias)  # [B, N, H]
+        pos_logits = F.linear(hidden, self.attn_in.weight @ pos_out.weight)  # attn_in(pos) less its bias
+        logits = self.attn_out(query.unsqueeze(2) - gather_rows(projected, idx) + pos_logits)
         return softmax_weighted_sum(logits, values, dim=2)  # over the k neighbours, per channel: [B, N, C]
 
 
@@ -216,11 +224,11 @@ class MatchingMatrix(nn.Module):
         self, src_features: Tensor, tgt_features: Tensor, src_neighbours: Tensor, tgt_neighbours: Tensor
     ) -> Tensor:
         # *_neighbours [B, N, k2 - 1]: kNN indices without the point itself
-        distance = pairwise_distances(src_features, tgt_features)  # D, [B, N, M]
-        preliminary = torch.softmax(-distance, dim=-1)  # M_P
+        neg_distance = -pairwise_distances(src_features, tgt_features)  # -D, [B, N, M]
+        preliminary = torch.softmax(neg_distance, dim=-1)  # M_P
         score = neighbourhood_sum(preliminary, src_neighbours, tgt_neighbours)
         score = score / src_neighbours.shape[-1]  # M_S, normalised as the official code does
-        return torch.softmax(-torch.exp(self.alpha - score) * distance, dim=-1)
+        return torch.softmax(torch.exp(self.alpha - score) * neg_distance, dim=-1)
 
 
 class OverlapPredictor(nn.Module):

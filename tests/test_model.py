@@ -5,7 +5,7 @@ import pytest
 
 torch = pytest.importorskip("torch", reason="the model tests need torch (pip install -e '.[train]')")
 
-from model.ifnet import IFNet, IFNetConfig, preset  # noqa: E402
+from model.ifnet import FeedbackRegistrationBlock, FeedbackTransformer, IFNet, IFNetConfig, preset  # noqa: E402
 from model.ops import fused_knn, gather_rows, knn, neighbourhood_sum, transform_points  # noqa: E402
 from model.training.data import Protocol, make_pair, synthetic_shape  # noqa: E402
 from model.training.losses import (  # noqa: E402
@@ -41,18 +41,55 @@ def test_gather_rows_picks_each_batch_items_own_rows():
     assert torch.equal(gather_rows(x, idx[..., 0]), expected[:, :, 0])
 
 
+def test_knn_matches_brute_force_distances_nearest_first():
+    g = torch.Generator().manual_seed(3)
+    query, reference = torch.rand(2, 60, 3, generator=g) + 5.0, torch.rand(2, 80, 3, generator=g) + 5.0  # off-centre
+    expected_sq, expected_idx = (torch.cdist(query.double(), reference.double()) ** 2).topk(6, largest=False)
+    sq_distances, idx = knn(query, reference, 6)
+    assert torch.equal(idx, expected_idx)
+    assert torch.allclose(sq_distances.double(), expected_sq, atol=1e-4)
+    own_sq, own = knn(query, query, 6)
+    assert torch.equal(own[..., 0], torch.arange(60).expand(2, 60)) and own_sq[..., 0].abs().max() < 1e-4
+
+
+def test_feedback_transformer_computes_the_papers_attention():
+    """softmax_k(attn_out(attn_in(f_i - f_j + pos_ij))) weighting (f_j + pos_ij), pos_ij = pos_mlp(d_i - d_j),
+    over the k nearest of both clouds, written directly: the module's rewrites must not change it."""
+    torch.manual_seed(4)
+    attention = FeedbackTransformer(TINY)
+    for norm in (m for m in attention.modules() if isinstance(m, torch.nn.BatchNorm1d)):
+        norm.running_mean.normal_()
+        norm.running_var.uniform_(0.5, 2.0)
+    attention.eval()
+    points, other = random_clouds(2, 40)
+    graph = FeedbackRegistrationBlock(TINY).build_graph(points)
+    descriptor, other_descriptor = torch.randn(2, 40, 14), torch.randn(2, 40, 14)
+    features, other_features = torch.randn(2, 40, TINY.emb_dims), torch.randn(2, 40, TINY.emb_dims)
+
+    idx = knn(points, torch.cat([points, other], 1), TINY.attention_k)[1]
+    fused_features = torch.cat([features, other_features], 1)
+    pos = attention.pos_mlp(descriptor.unsqueeze(2) - gather_rows(torch.cat([descriptor, other_descriptor], 1), idx))
+    difference = features.unsqueeze(2) - gather_rows(fused_features, idx) + pos
+    weights = torch.softmax(attention.attn_out(attention.attn_in(difference)), dim=2)
+    expected = (weights * (gather_rows(fused_features, idx) + pos)).sum(2)
+
+    with torch.no_grad():
+        out = attention(points, graph, descriptor, features, other, other_descriptor, other_features)
+    assert torch.allclose(out, expected, atol=1e-5)
+
+
 def test_fused_knn_is_knn_over_both_clouds_and_survives_a_rigid_motion():
     g = torch.Generator().manual_seed(2)
     points, other = torch.rand(2, 200, 3, generator=g), torch.rand(2, 150, 3, generator=g)
     own_sq, own = knn(points, points, 12)  # the graph is built wider than the attention needs
-    expected = knn(points, torch.cat([points, other], 1), 8).indices.sort(-1).values
+    expected = knn(points, torch.cat([points, other], 1), 8)[1].sort(-1).values
     assert torch.equal(fused_knn(points, own, own_sq, other, 8).sort(-1).values, expected)
     # own neighbours found before a rigid motion still hold after it (the source moves every block)
     angle = torch.tensor(0.7)
     c, s = torch.cos(angle), torch.sin(angle)
     rotation = torch.stack([torch.stack([c, -s, 0 * c]), torch.stack([s, c, 0 * c]), torch.tensor([0.0, 0, 1])])
     moved = transform_points(points, rotation.expand(2, 3, 3), torch.tensor([[0.3, -0.2, 0.1]] * 2))
-    expected = knn(moved, torch.cat([moved, other], 1), 8).indices.sort(-1).values
+    expected = knn(moved, torch.cat([moved, other], 1), 8)[1].sort(-1).values
     assert torch.equal(fused_knn(moved, own, own_sq, other, 8).sort(-1).values, expected)
 
 
