@@ -52,8 +52,14 @@ def free_port() -> int:
         return probe.getsockname()[1]
 
 
-def start_service(batch_size: int, port: int) -> subprocess.Popen:
-    env = {**os.environ, "PYTHONPATH": str(ROOT), "IFNET_MAX_BATCH_SIZE": str(batch_size), "IFNET_LOG_LEVEL": "warning"}
+def start_service(batch_size: int, port: int, model_calls: int = 1) -> subprocess.Popen:
+    env = {
+        **os.environ,
+        "PYTHONPATH": str(ROOT),
+        "IFNET_MAX_BATCH_SIZE": str(batch_size),
+        "IFNET_MODEL_CALLS": str(model_calls),
+        "IFNET_LOG_LEVEL": "warning",
+    }
     return subprocess.Popen([sys.executable, "-m", "service", "--port", str(port)], env=env)
 
 

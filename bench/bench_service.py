@@ -1,9 +1,10 @@
 """Service benchmark: /register throughput and latency by concurrency, batching and payload size.
 
-For each batching mode (on: IFNET_MAX_BATCH_SIZE=--batch-size, off: 1) one `python -m service`
-process is started on a free loopback port (bench_batching.start_service) and awaited. Each
-payload first gets `--warmup` seconds of unmeasured load from 4 clients; then, per client count,
-a closed loop of asyncio clients (httpx) posts pre-encoded requests for `--duration` seconds.
+For each mode (on: IFNET_MAX_BATCH_SIZE=--batch-size; off: 1; 2calls: 1 with IFNET_MODEL_CALLS=2,
+two model calls at once on one ONNX Runtime thread each) one `python -m service` process is
+started on a free loopback port (bench_batching.start_service) and awaited. Each payload first
+gets `--warmup` seconds of unmeasured load from 4 clients; then, per client count, a closed loop
+of asyncio clients (httpx) posts pre-encoded requests for `--duration` seconds.
 Reported per cell: pairs/s, latency p50/p95/p99 of successful requests, status counts, mean
 batch size, queue wait and model-call time (from /metrics deltas), the server's CPU use and
 peak resident memory.
@@ -13,7 +14,7 @@ scans); `scan` = real scans (12k-100k points per cloud) as JSON; `scan-npz` = th
 a raw NPZ body. Client counts: 1, 4, 16, 64 (`scan-npz`: 1 and 16). A closed loop stops sending
 after `--duration` but waits for the answers in flight, which are counted (the time too).
 
-    python bench/bench_service.py                               # the full matrix, ~8 minutes
+    python bench/bench_service.py                               # the full matrix, ~12 minutes
     python bench/bench_service.py --clients 1 16 --payloads model --duration 5
 
 Writes docs/benchmarks/service.json (read by bench/report.py). Everything stays on 127.0.0.1
@@ -37,6 +38,9 @@ import loadgen  # noqa: E402
 from bench_batching import free_port, start_service, wait_ready  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
+# mode -> (max batch size, or None for --batch-size; model calls at once)
+# 2calls without batching: on one thread, batches of 2-4 took longer per pair than single pairs.
+MODES = {"on": (None, 1), "off": (1, 1), "2calls": (1, 2)}
 DEFAULT_CLIENTS = {"model": [1, 4, 16, 64], "scan": [1, 4, 16, 64], "scan-npz": [1, 16]}
 PAYLOADS = {
     "model": lambda: loadgen.model_sized_bodies(768),
@@ -65,7 +69,7 @@ def main() -> int:
     parser.add_argument("--clients", type=int, nargs="+", help="client counts (default: per payload, see above)")
     parser.add_argument("--payloads", nargs="+", default=list(PAYLOADS), choices=list(PAYLOADS))
     parser.add_argument("--batch-size", type=int, default=4, help="IFNET_MAX_BATCH_SIZE with batching on")
-    parser.add_argument("--modes", nargs="+", default=["on", "off"], choices=["on", "off"])
+    parser.add_argument("--modes", nargs="+", default=list(MODES), choices=list(MODES))
     parser.add_argument("--duration", type=float, default=12.0, help="measured seconds per cell")
     parser.add_argument("--warmup", type=float, default=3.0, help="unmeasured seconds per payload")
     parser.add_argument("--out", type=Path, default=ROOT / "docs" / "benchmarks" / "service.json")
@@ -86,12 +90,13 @@ def main() -> int:
         )
 
     cells = []
-    print("mode  payload   clients  pairs/s   p50 ms   p95 ms   p99 ms  batch  queue ms  srv CPUs  RSS MB  statuses")
+    print("mode    payload   clients  pairs/s   p50 ms   p95 ms   p99 ms  batch  queue ms  srv CPUs  RSS MB  statuses")
     for mode in args.modes:
-        batch_size = args.batch_size if mode == "on" else 1
+        batch_size, model_calls = MODES[mode]
+        batch_size = batch_size or args.batch_size
         port = free_port()
         url = f"http://127.0.0.1:{port}"
-        process = start_service(batch_size, port)
+        process = start_service(batch_size, port, model_calls)
         try:
             wait_ready(url, process)
             served = loadgen.served_model(url)
@@ -100,11 +105,12 @@ def main() -> int:
                 asyncio.run(loadgen.closed_loop(url, items, 4, args.warmup))
                 for clients in args.clients if args.clients else DEFAULT_CLIENTS[payload]:
                     cell = measure_cell(url, process.pid, items, clients, args.duration)
-                    cell |= {"mode": mode, "max_batch_size": batch_size, "payload": payload, "clients": clients}
+                    cell |= {"mode": mode, "max_batch_size": batch_size, "model_calls": model_calls}
+                    cell |= {"payload": payload, "clients": clients}
                     cell["points_per_cloud"] = sorted({body.points for body in items})
                     cells.append(cell)
                     print(
-                        f"{mode:4s}  {payload:8s}  {clients:7d}  {cell['pairs_per_s']:7.2f}  "
+                        f"{mode:6s}  {payload:8s}  {clients:7d}  {cell['pairs_per_s']:7.2f}  "
                         f"{fmt(cell['p50_ms'])}  {fmt(cell['p95_ms'])}  {fmt(cell['p99_ms'])}  "
                         f"{cell['mean_batch']:5.2f}  {cell['mean_queue_ms']:8.0f}  {cell['server_cpus']:8.2f}  "
                         f"{cell['server_vmhwm_mb']:6.0f}  {cell['statuses']}",

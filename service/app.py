@@ -57,12 +57,15 @@ def _lifespan(engine: Engine | None):
         state: ServiceState = app.state.service
         settings = state.settings
         # A missing or corrupt model raises ModelLoadError here, so startup fails with its message.
-        state.engine = engine or await asyncio.to_thread(OnnxEngine, settings.model_path, settings.threads)
+        state.engine = engine or await asyncio.to_thread(
+            OnnxEngine, settings.model_path, settings.threads, settings.model_calls
+        )
         state.batcher = MicroBatcher(
             state.engine,
             max_batch_size=settings.max_batch_size,
             max_queue_size=settings.max_queue_size,
             max_batch_delay_ms=settings.max_batch_delay_ms,
+            concurrent_calls=settings.model_calls,
             metrics=state.metrics,
         )
         info = state.model

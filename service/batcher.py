@@ -1,8 +1,9 @@
-"""An asyncio micro-batcher in front of the model: requests queue, one worker runs them in batches.
+"""An asyncio micro-batcher in front of the model: requests queue, workers run them in batches.
 
-Each submitted pair gets a future. The worker takes up to `max_batch_size` waiting pairs (after
+Each submitted pair gets a future. A worker takes up to `max_batch_size` waiting pairs (after
 an optional delay to let more arrive), runs one model call per input shape on a thread of its
-own so that the event loop stays free, and resolves the futures. A pair whose caller gave up
+own so that the event loop stays free, and resolves the futures. `concurrent_calls` workers
+(default 1) take batches side by side, each with its own thread. A pair whose caller gave up
 (timeout, client disconnect) has a cancelled future: the worker skips it, or drops its result.
 """
 
@@ -61,6 +62,7 @@ class MicroBatcher:
         max_batch_size: int,
         max_queue_size: int,
         max_batch_delay_ms: float = 0.0,
+        concurrent_calls: int = 1,
         metrics: Metrics | None = None,
     ):
         self.engine = engine
@@ -70,14 +72,15 @@ class MicroBatcher:
         self.metrics = metrics
         self._queue: asyncio.Queue[_Pending] = asyncio.Queue()  # bounded by _waiting, see submit
         self._waiting = 0  # queued pairs whose caller still waits
-        self._running = 0  # pairs in the model call under way
+        self._running = 0  # pairs in the model calls under way
         self._idle = asyncio.Event()
         self._idle.set()
         self._closing = False
-        self._worker: asyncio.Task | None = None
+        self.concurrent_calls = concurrent_calls
+        self._workers: list[asyncio.Task] = []
         self._batch_seconds = 1.0  # running estimate of one model call, for Retry-After
-        # One thread for model calls: ORT parallelises inside a call, and calls must not overlap.
-        self._executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix="ifnet-inference")
+        # One thread per worker: ORT parallelises inside a call with the engine's threads.
+        self._executor = ThreadPoolExecutor(max_workers=concurrent_calls, thread_name_prefix="ifnet-inference")
 
     # ------------------------------------------------------------ lifecycle
 
@@ -91,8 +94,11 @@ class MicroBatcher:
         logger.info("warm-up of batch sizes 1..%d took %.2f s", self.max_batch_size, time.perf_counter() - started)
 
     def start(self) -> None:
-        if self._worker is None:
-            self._worker = asyncio.get_running_loop().create_task(self._work(), name="ifnet-batcher")
+        if not self._workers:
+            loop = asyncio.get_running_loop()
+            self._workers = [
+                loop.create_task(self._work(), name=f"ifnet-batcher-{i}") for i in range(self.concurrent_calls)
+            ]
 
     async def close(self, grace_s: float) -> None:
         """Stop accepting pairs, let queued and running ones finish (up to grace_s), then stop."""
@@ -101,10 +107,11 @@ class MicroBatcher:
             await asyncio.wait_for(self._idle.wait(), grace_s)
         except TimeoutError:
             logger.warning("batcher: %d pairs still waiting after %.1f s; abandoning them", self._waiting, grace_s)
-        if self._worker is not None:
-            self._worker.cancel()
+        for worker in self._workers:
+            worker.cancel()
+        for worker in self._workers:
             with contextlib.suppress(asyncio.CancelledError):
-                await self._worker
+                await worker
         while not self._queue.empty():
             pending = self._queue.get_nowait()
             if not pending.future.done():
@@ -124,7 +131,7 @@ class MicroBatcher:
     def retry_after_s(self) -> int:
         """Rough time until the queue has room again: the batches ahead times a recent batch duration."""
         batches_ahead = math.ceil(self._waiting / self.max_batch_size) + 1
-        return max(1, math.ceil(batches_ahead * self._batch_seconds))
+        return max(1, math.ceil(batches_ahead * self._batch_seconds / self.concurrent_calls))
 
     async def submit(self, source: np.ndarray, target: np.ndarray, timeout_s: float | None = None) -> Prediction:
         """Queue one normalised pair ([N, 3], [M, 3] float32) and wait for the model's answer.
@@ -198,7 +205,7 @@ class MicroBatcher:
                 except Exception as error:  # a bug here must not stop the worker for everyone else
                     logger.exception("batch of %d failed", len(batch))
                     self._fail(batch, InferenceError(f"inference failed: {error}"))
-                self._running = 0
+                self._running -= len(batch)
                 self._check_idle()
         except asyncio.CancelledError:
             self._fail(batch, ShuttingDownError("the service stopped before this request finished"))

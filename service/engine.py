@@ -171,9 +171,13 @@ def _metadata_count(metadata: dict[str, str], key: str, path: Path, missing: int
 
 
 class OnnxEngine:
-    """One ONNX Runtime session with graph optimisations on and intra-op threads sized to this process."""
+    """One ONNX Runtime session with graph optimisations on and intra-op threads sized to this process.
 
-    def __init__(self, path: Path, threads: int | None = None):
+    `threads` (default: the usable CPUs) are shared out among `concurrent_calls` calls that may run
+    at once: ONNX Runtime's Run is thread-safe, and each call gets threads // concurrent_calls.
+    """
+
+    def __init__(self, path: Path, threads: int | None = None, concurrent_calls: int = 1):
         import onnxruntime as ort  # heavy import, kept out of modules that only need the types above
 
         path = Path(path)
@@ -181,11 +185,12 @@ class OnnxEngine:
             raise ModelLoadError(
                 f"model file {path} does not exist: set IFNET_MODEL_PATH (or --model-path) to an IFNet ONNX export"
             )
-        self.threads = threads or available_cpus()
+        self.concurrent_calls = concurrent_calls
+        self.threads = max(1, (threads or available_cpus()) // concurrent_calls)  # per call
         options = ort.SessionOptions()
         options.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
         options.intra_op_num_threads = self.threads
-        options.inter_op_num_threads = 1  # one model call at a time: the batcher serialises them
+        options.inter_op_num_threads = 1  # the graph is one chain; calls run side by side instead
         try:
             self.session = ort.InferenceSession(str(path), options, providers=["CPUExecutionProvider"])
         except Exception as error:  # onnxruntime raises its own exception types for corrupt files
@@ -231,12 +236,13 @@ class OnnxEngine:
             metadata=metadata,
         )
         logger.info(
-            "loaded model %s (%s, version %s, %d native points) with %d ORT threads",
+            "loaded model %s (%s, version %s, %d native points) with %d ORT threads per call, %d call(s) at once",
             path,
             self.info.name,
             self.info.version,
             self.info.native_num_points,
             self.threads,
+            self.concurrent_calls,
         )
 
     def run(self, source: np.ndarray, target: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

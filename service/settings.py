@@ -18,7 +18,16 @@ class Settings(BaseSettings):
     port: int = Field(8000, ge=0, le=65535, description="TCP port to listen on.")
     model_path: Path = Field(DEFAULT_MODEL_PATH, description="ONNX model file (IFNet export).")
     threads: int | None = Field(
-        None, ge=1, description="ONNX Runtime intra-op threads; default: the CPUs this process may use."
+        None,
+        ge=1,
+        description="ONNX Runtime threads for the model, shared out among `model_calls`; default: the CPUs this "
+        "process may use.",
+    )
+    # On a 2-CPU virtual machine one call's two threads often get far less than 2 CPUs between them
+    # (bench/machine_check.py), while two 1-thread calls keep both busy: 2 doubled the pairs/s under
+    # load there, at the cost of a lone request's latency (docs/benchmarks.md).
+    model_calls: int = Field(
+        1, ge=1, le=16, description="Model calls run at once, each on `threads` / model_calls ONNX Runtime threads."
     )
     max_batch_size: int = Field(4, ge=1, le=64, description="Most requests run in one model call.")
     max_batch_delay_ms: float = Field(

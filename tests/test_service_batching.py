@@ -303,6 +303,29 @@ async def test_queue_full_and_inference_errors_are_typed(tiny_model):
     await batcher.close(grace_s=1)
 
 
+async def test_concurrent_calls_run_side_by_side_and_every_pair_gets_its_own_answer(tiny_model):
+    engine = OnnxEngine(tiny_model, threads=2, concurrent_calls=2)
+    both_inside = threading.Barrier(2, timeout=30)  # breaks (a failed call) if calls never overlap
+
+    class Paired:
+        info = engine.info
+
+        def run(self, source, target):
+            both_inside.wait()
+            return engine.run(source, target)
+
+    batcher = MicroBatcher(Paired(), max_batch_size=1, max_queue_size=8, concurrent_calls=2)
+    batcher.start()
+    pairs = [tuple(cloud.astype(np.float32) for cloud in pair(seed)) for seed in range(4)]
+    results = await asyncio.gather(*(batcher.submit(source, target) for source, target in pairs))
+    await batcher.close(grace_s=5)
+    for (source, target), result in zip(pairs, results, strict=True):
+        rotation, translation = engine.run(source[None], target[None])
+        assert np.allclose(result.rotation, rotation[0], atol=1e-6) and result.batch_size == 1
+        assert np.allclose(result.translation, translation[0], atol=1e-6)
+    assert batcher.queue_depth == 0
+
+
 async def test_a_batch_delay_lets_a_batch_fill_up(tiny_model):
     """With max_batch_delay_ms, the worker waits for more pairs after the first (until the batch is full)."""
     engine = OnnxEngine(tiny_model)

@@ -57,6 +57,9 @@ def test_engine_threads_follow_the_usable_cpus_unless_set(tiny_model):
     engine = OnnxEngine(tiny_model, threads=1)
     assert engine.threads == 1
     assert engine.session.get_session_options().intra_op_num_threads == 1
+    # concurrent calls share the threads out, and each gets at least one
+    assert OnnxEngine(tiny_model, threads=4, concurrent_calls=2).threads == 2
+    assert OnnxEngine(tiny_model, threads=1, concurrent_calls=2).threads == 1
 
 
 def test_metadata_is_read(tiny_model):
@@ -133,8 +136,10 @@ def test_settings_come_from_the_environment(monkeypatch):
     monkeypatch.setenv("IFNET_MAX_BATCH_DELAY_MS", "2.5")
     monkeypatch.setenv("IFNET_API_KEY", "k")
     monkeypatch.setenv("IFNET_THREADS", "3")
+    monkeypatch.setenv("IFNET_MODEL_CALLS", "2")
     settings = Settings()
     assert (settings.max_batch_size, settings.max_batch_delay_ms, settings.threads) == (6, 2.5, 3)
+    assert settings.model_calls == 2
     assert settings.api_key.get_secret_value() == "k"
     assert settings.model_path == REPO / "service" / "models" / "ifnet.onnx"
     assert Settings(max_batch_size=2).max_batch_size == 2  # explicit values win over the environment
