@@ -234,7 +234,7 @@ def raw_request(port: int, body: bytes, send_bytes: int, wait_s: float = 0.0) ->
 
 def test_a_real_server_forgets_clients_that_vanish(tmp_path, tiny_model):
     """uvicorn on loopback: clients that reset mid-upload or while their pair is processed."""
-    heavy = payload(5, count=12_000, max_points=1024)  # farthest-point sampling keeps it busy for a while
+    heavy = payload(5, count=12_000, max_points=1024)  # parsing and sampling keep it busy for a while
     with service_process(tmp_path, tiny_model, max_network_points="1024") as (_, url, log):
         port = httpx.URL(url).port
         for index in range(3):

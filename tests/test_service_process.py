@@ -69,7 +69,7 @@ def test_server_and_command_line_client(tmp_path, tiny_model):
 
 
 def test_sigterm_finishes_in_flight_requests_then_exits(tmp_path, tiny_model):
-    # Clouds big enough that farthest-point sampling keeps each request busy for a while.
+    # Clouds big enough that parsing and sampling keep each request busy for a while.
     rng = np.random.default_rng(1)
     clouds = [rng.normal(size=(12_000, 3)).tolist() for _ in range(2)]
     request = {"source": clouds[0], "target": clouds[1], "max_points": 1024}

@@ -16,6 +16,7 @@ from model.geometry import (
     apply_transform,
     degeneracy,
     euler_to_matrix,
+    farthest_point_sample,
     from_matrix,
     rotation_angle_deg,
     to_matrix,
@@ -134,6 +135,15 @@ def test_refinement_corrects_a_network_error_in_user_units(real_scans):
     assert result.refinement.max_distance == pytest.approx(0.05 * radius(source) / NETWORK_RADIUS, rel=0.05)
     assert result.refinement.iterations >= 1
     assert result.fitness > 0.99
+
+
+def test_farthest_point_sampling_picks_the_point_farthest_from_those_chosen():
+    points = np.random.default_rng(7).normal(size=(500, 3)) * [3.0, 1.0, 0.2] + 10.0  # anisotropic, off-centre
+    chosen = farthest_point_sample(points, 60, start=4)
+    assert chosen[0] == 4 and len(set(chosen.tolist())) == 60
+    for i in range(1, 60):
+        nearest_chosen = ((points[:, None, :] - points[chosen[:i]][None]) ** 2).sum(-1).min(axis=1)
+        assert chosen[i] == np.argmax(nearest_chosen)
 
 
 def test_sampling_is_reproducible_and_per_cloud(real_scans):
