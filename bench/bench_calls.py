@@ -55,7 +55,8 @@ def main() -> int:
     if not 1 <= args.windows <= 50 or not 1 <= args.window <= 60:
         parser.error("--windows must be in [1, 50] and --window in [1, 60]")
 
-    one_call, two_calls = session(args.model, 2), session(args.model, 1)  # one session serves both callers
+    # As in the service, the two concurrent callers share one (1-thread) session.
+    one_call, two_calls = session(args.model, 2), session(args.model, 1)
     feeds = example_feeds(one_call)
     one_call.run(None, feeds)
     two_calls.run(None, feeds)
