@@ -165,9 +165,12 @@ def resample_indices(
     """Indices that bring a cloud of num_points to exactly count points.
 
     Larger clouds are subsampled ("fps": farthest point, "random": seeded, without replacement);
-    smaller ones keep every point once and repeat randomly chosen ones to fill up.
+    smaller ones keep every point once and repeat randomly chosen ones to fill up. A cloud of
+    exactly count points is kept as it is: any sampling would only reorder it.
     """
-    if num_points >= count:
+    if num_points == count:
+        return np.arange(count)
+    if num_points > count:
         if method == "fps":
             return farthest_point_sample(points, count)
         return np.sort(rng.choice(num_points, size=count, replace=False))

@@ -156,6 +156,8 @@ def test_sampling_is_reproducible_and_per_cloud(real_scans):
     assert not np.array_equal(
         sample_indices(cloud, 256, "random", 5, 4096), sample_indices(cloud, 256, "random", 6, 4096)
     )
+    for sampling in ("fps", "random"):  # a cloud of the network's size is kept as it is, in its order
+        np.testing.assert_array_equal(sample_indices(cloud[:256], 256, sampling, 5, 4096), np.arange(256))
     small = sample_indices(cloud[:100], 256, "fps", seed=0, fps_max_input=4096)
     assert len(small) == 256 and set(small.tolist()) == set(range(100))  # every point kept, some repeated
 
