@@ -245,7 +245,7 @@ def main() -> int:
     log = Path(tempfile.mkdtemp(prefix="ifnet-overload-")) / "service.log"
     args.out.parent.mkdir(parents=True, exist_ok=True)
     record: dict = {
-        "command": "python bench/bench_overload.py " + " ".join(sys.argv[1:]),
+        "command": " ".join(["python bench/bench_overload.py", *sys.argv[1:]]),
         "when": datetime.now(UTC).strftime("%Y-%m-%d %H:%M UTC"),
         "machine": {"cpus": os.cpu_count()},
         "request_timeout_s": REQUEST_TIMEOUT_S,

@@ -122,7 +122,7 @@ def main() -> int:
 
     args.out.parent.mkdir(parents=True, exist_ok=True)
     record = {
-        "command": "python bench/bench_service.py " + " ".join(sys.argv[1:]),
+        "command": " ".join(["python bench/bench_service.py", *sys.argv[1:]]),
         "when": datetime.now(UTC).strftime("%Y-%m-%d %H:%M UTC"),
         "machine": {"cpus": os.cpu_count(), "arch": platform.machine(), "loadavg_at_end": os.getloadavg()},
         "model": served,

@@ -119,7 +119,7 @@ def main() -> int:
 
     metadata = dict(plain.get_modelmeta().custom_metadata_map)
     record = {
-        "command": "python bench/profile_model.py " + " ".join(sys.argv[1:]),
+        "command": " ".join(["python bench/profile_model.py", *sys.argv[1:]]),
         "model_version": (metadata.get("weights_sha256") or file_sha256(args.model))[:12],
         "preset": metadata.get("preset"),
         "model": str(args.model.relative_to(ROOT) if args.model.is_relative_to(ROOT) else args.model),
