@@ -23,7 +23,7 @@ from pathlib import Path
 
 import numpy as np
 import onnxruntime as ort
-from machine_check import DEFAULT_MODEL, ROOT, example_feeds, session, timed_model
+from machine_check import DEFAULT_MODEL, ROOT, timed_model, warm_sessions
 
 
 def pairs_per_second(model: ort.InferenceSession, feeds: dict, calls_at_once: int, seconds: float) -> float:
@@ -56,10 +56,7 @@ def main() -> int:
         parser.error("--windows must be in [1, 50] and --window in [1, 60]")
 
     # As in the service, the two concurrent callers share one (1-thread) session.
-    one_call, two_calls = session(args.model, 2), session(args.model, 1)
-    feeds = example_feeds(one_call)
-    one_call.run(None, feeds)
-    two_calls.run(None, feeds)
+    one_call, two_calls, feeds = warm_sessions(args.model)
     windows = []
     for index in range(args.windows):
         order = [(one_call, 1), (two_calls, 2)] if index % 2 == 0 else [(two_calls, 2), (one_call, 1)]

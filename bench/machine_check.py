@@ -45,6 +45,15 @@ def example_feeds(model: ort.InferenceSession) -> dict[str, np.ndarray]:
     return {"source": clouds[0], "target": clouds[1]}
 
 
+def warm_sessions(model: Path) -> tuple[ort.InferenceSession, ort.InferenceSession, dict[str, np.ndarray]]:
+    """A 2-thread and a 1-thread session of model, each called once, and the feeds they ran on."""
+    two, one = session(model, 2), session(model, 1)
+    feeds = example_feeds(two)
+    two.run(None, feeds)
+    one.run(None, feeds)
+    return two, one, feeds
+
+
 def timed_model(model: ort.InferenceSession, path: Path) -> dict:
     """What was timed: the call's cost follows the graph (preset, EdgeConv neighbours, how it was
     exported), not the weights, so the ONNX file's own hash is recorded beside the weights'."""
@@ -68,10 +77,7 @@ def main() -> int:
     if not 1 <= args.seconds <= 120:
         parser.error("--seconds must be in [1, 120]")
 
-    two, one = session(args.model, 2), session(args.model, 1)
-    feeds = example_feeds(two)
-    two.run(None, feeds)
-    one.run(None, feeds)
+    two, one, feeds = warm_sessions(args.model)
     samples = []
     started = time.perf_counter()
     while time.perf_counter() - started < args.seconds:
