@@ -52,14 +52,11 @@ def free_port() -> int:
         return probe.getsockname()[1]
 
 
-def start_service(batch_size: int, port: int, model_calls: int = 1) -> subprocess.Popen:
-    env = {
-        **os.environ,
-        "PYTHONPATH": str(ROOT),
-        "IFNET_MAX_BATCH_SIZE": str(batch_size),
-        "IFNET_MODEL_CALLS": str(model_calls),
-        "IFNET_LOG_LEVEL": "warning",
-    }
+def start_service(batch_size: int, port: int, model_calls: int | None = None) -> subprocess.Popen:
+    """`python -m service` on 127.0.0.1:port with this batch size (and model calls; default: the service's)."""
+    env = {**os.environ, "PYTHONPATH": str(ROOT), "IFNET_MAX_BATCH_SIZE": str(batch_size), "IFNET_LOG_LEVEL": "warning"}
+    if model_calls is not None:
+        env["IFNET_MODEL_CALLS"] = str(model_calls)
     return subprocess.Popen([sys.executable, "-m", "service", "--port", str(port)], env=env)
 
 

@@ -1,11 +1,11 @@
 """Model throughput: one 2-thread call at a time against two 1-thread calls at once.
 
-The service's default runs one model call at a time on every CPU; `IFNET_MODEL_CALLS=2` runs two
-calls side by side on one ONNX Runtime thread each. This times both ways on the served model
-(batch 1, its native point count, no HTTP) in alternating windows of `--window` seconds, so that
-the machine's drifting speed reaches both alike, and prints pairs/s per window pair and the median
-ratio. The service's own figures (HTTP, parsing, the load generator on the same CPUs) are in
-bench/bench_service.py's `2calls` mode.
+The service gives a model call that starts alone every thread and calls side by side a share each
+(`IFNET_MODEL_CALLS`, default 2). This times both ways on the served model (batch 1, its native
+point count, no HTTP) in alternating windows of `--window` seconds, so that the machine's drifting
+speed reaches both alike, and prints pairs/s per window pair and the median ratio. The service's
+own figures (HTTP, parsing, the load generator on the same CPUs) are in bench/bench_service.py
+and bench/bench_scaling.py.
 
     python bench/bench_calls.py
     python bench/bench_calls.py --windows 4 --window 3

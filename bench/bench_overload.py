@@ -42,6 +42,10 @@ import loadgen  # noqa: E402
 from bench_batching import free_port, wait_ready  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from service.settings import Settings  # noqa: E402
+
 DECLARED = {"200", "429", "503"}
 REQUEST_TIMEOUT_S = 30.0  # the service's default IFNET_REQUEST_TIMEOUT_S
 
@@ -249,6 +253,8 @@ def main() -> int:
         "when": datetime.now(UTC).strftime("%Y-%m-%d %H:%M UTC"),
         "machine": {"cpus": os.cpu_count()},
         "request_timeout_s": REQUEST_TIMEOUT_S,
+        # What the service reads from the same environment: its defaults unless IFNET_* are set.
+        "settings": Settings().model_dump(include={"max_batch_size", "model_calls", "max_queue_size", "max_in_flight"}),
         "payload": args.payload,
         "payload_points": sorted({body.points for body in bodies}),
     }

@@ -1,10 +1,12 @@
 """Service benchmark: /register throughput and latency by concurrency, batching and payload size.
 
-For each mode (on: IFNET_MAX_BATCH_SIZE=--batch-size; off: 1; 2calls: 1 with IFNET_MODEL_CALLS=2,
-two model calls at once on one ONNX Runtime thread each) one `python -m service` process is
-started on a free loopback port (bench_batching.start_service) and awaited. Each payload first
-gets `--warmup` seconds of unmeasured load from 4 clients; then, per client count, a closed loop
-of asyncio clients (httpx) posts pre-encoded requests for `--duration` seconds.
+For each mode (off: IFNET_MAX_BATCH_SIZE=1 and IFNET_MODEL_CALLS=2, the shipped defaults, under
+which a call that starts alone runs on both ONNX Runtime threads and two calls side by side on one
+each; on: the same with batches of up to --batch-size; 1call: batch 1, one call at a time on both
+threads) one `python -m service` process is started on a free loopback port
+(bench_batching.start_service) and awaited. Each payload first gets `--warmup` seconds of
+unmeasured load from 4 clients; then, per client count, a closed loop of asyncio clients (httpx)
+posts pre-encoded requests for `--duration` seconds.
 Reported per cell: pairs/s, latency p50/p95/p99 of successful requests, status counts, mean
 batch size, queue wait and model-call time (from /metrics deltas), the server's CPU use and
 peak resident memory.
@@ -38,9 +40,9 @@ import loadgen  # noqa: E402
 from bench_batching import free_port, start_service, wait_ready  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
-# mode -> (max batch size, or None for --batch-size; model calls at once)
-# 2calls without batching: on one thread, batches of 2-4 took longer per pair than single pairs.
-MODES = {"on": (None, 1), "off": (1, 1), "2calls": (1, 2)}
+# mode -> (max batch size, or None for --batch-size; model calls at once). `off` is the shipped
+# default (service/settings.py); `1call` runs one call at a time on every thread, whatever the load.
+MODES = {"off": (1, 2), "on": (None, 2), "1call": (1, 1)}
 DEFAULT_CLIENTS = {"model": [1, 4, 16, 64], "scan": [1, 4, 16, 64], "scan-npz": [1, 16]}
 PAYLOADS = {
     "model": lambda: loadgen.model_sized_bodies(768),

@@ -58,14 +58,14 @@ def _lifespan(engine: Engine | None):
         settings = state.settings
         # A missing or corrupt model raises ModelLoadError here, so startup fails with its message.
         state.engine = engine or await asyncio.to_thread(
-            OnnxEngine, settings.model_path, settings.threads, settings.model_calls
+            OnnxEngine, settings.model_path, settings.threads, settings.calls_at_once
         )
         state.batcher = MicroBatcher(
             state.engine,
             max_batch_size=settings.max_batch_size,
             max_queue_size=settings.max_queue_size,
             max_batch_delay_ms=settings.max_batch_delay_ms,
-            concurrent_calls=settings.model_calls,
+            concurrent_calls=settings.calls_at_once,
             metrics=state.metrics,
         )
         info = state.model

@@ -5,6 +5,7 @@ import json
 import logging
 import math
 import os
+import threading
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Protocol
@@ -171,10 +172,14 @@ def _metadata_count(metadata: dict[str, str], key: str, path: Path, missing: int
 
 
 class OnnxEngine:
-    """One ONNX Runtime session with graph optimisations on and intra-op threads sized to this process.
+    """The model in ONNX Runtime with graph optimisations on and intra-op threads sized to this process.
 
-    `threads` (default: the usable CPUs) are shared out among `concurrent_calls` calls that may run
-    at once: ONNX Runtime's Run is thread-safe, and each call gets threads // concurrent_calls.
+    Up to `concurrent_calls` calls may run at once (ONNX Runtime's Run is thread-safe). A call that
+    starts while no other runs gets all `threads` (default: the usable CPUs), the lowest latency
+    for a lone request; one that starts beside others gets threads // concurrent_calls, so that
+    under load the calls share the CPUs out instead of their threads contending for them. Each
+    thread count is its own session (a session's thread count is fixed when it opens); with one
+    call at a time, or one thread, there is just one.
     """
 
     def __init__(self, path: Path, threads: int | None = None, concurrent_calls: int = 1):
@@ -186,15 +191,14 @@ class OnnxEngine:
                 f"model file {path} does not exist: set IFNET_MODEL_PATH (or --model-path) to an IFNet ONNX export"
             )
         self.concurrent_calls = concurrent_calls
-        self.threads = max(1, (threads or available_cpus()) // concurrent_calls)  # per call
-        options = ort.SessionOptions()
-        options.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
-        options.intra_op_num_threads = self.threads
-        options.inter_op_num_threads = 1  # the graph is one chain; calls run side by side instead
-        try:
-            self.session = ort.InferenceSession(str(path), options, providers=["CPUExecutionProvider"])
-        except Exception as error:  # onnxruntime raises its own exception types for corrupt files
-            raise ModelLoadError(f"model file {path} could not be loaded by onnxruntime: {error}") from error
+        self.threads = threads or available_cpus()  # of a call that runs alone
+        self.threads_beside_others = max(1, self.threads // concurrent_calls)
+        self.session = _open_session(ort, path, self.threads)
+        self._sessions = [self.session]  # [alone, beside others] where the two thread counts differ
+        if self.threads_beside_others != self.threads:
+            self._sessions.append(_open_session(ort, path, self.threads_beside_others))
+        self._calls_running = 0
+        self._calls_lock = threading.Lock()
 
         inputs, outputs = self.session.get_inputs(), self.session.get_outputs()
         missing_in = set(REQUIRED_INPUTS) - {node.name for node in inputs}
@@ -236,21 +240,50 @@ class OnnxEngine:
             metadata=metadata,
         )
         logger.info(
-            "loaded model %s (%s, version %s, %d native points) with %d ORT threads per call, %d call(s) at once",
+            "loaded model %s (%s, version %s, %d native points): up to %d call(s) at once, on %d ORT threads "
+            "alone and %d beside others",
             path,
             self.info.name,
             self.info.version,
             self.info.native_num_points,
-            self.threads,
             self.concurrent_calls,
+            self.threads,
+            self.threads_beside_others,
         )
 
     def run(self, source: np.ndarray, target: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        rotation, translation = self.session.run(
+        with self._calls_lock:
+            session = self._sessions[0] if self._calls_running == 0 else self._sessions[-1]
+            self._calls_running += 1
+        try:
+            return self._run(session, source, target)
+        finally:
+            with self._calls_lock:
+                self._calls_running -= 1
+
+    def warm_up(self, source: np.ndarray, target: np.ndarray) -> None:
+        """One call on every session, so that neither pays its first-call cost on a request."""
+        for session in self._sessions:
+            self._run(session, source, target)
+
+    @staticmethod
+    def _run(session, source: np.ndarray, target: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        rotation, translation = session.run(
             list(REQUIRED_OUTPUTS),
             {"source": np.ascontiguousarray(source, np.float32), "target": np.ascontiguousarray(target, np.float32)},
         )
         return rotation, translation
+
+
+def _open_session(ort, path: Path, threads: int):
+    options = ort.SessionOptions()
+    options.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
+    options.intra_op_num_threads = threads
+    options.inter_op_num_threads = 1  # the graph is one chain; calls run side by side instead
+    try:
+        return ort.InferenceSession(str(path), options, providers=["CPUExecutionProvider"])
+    except Exception as error:  # onnxruntime raises its own exception types for corrupt files
+        raise ModelLoadError(f"model file {path} could not be loaded by onnxruntime: {error}") from error
 
 
 def warm_up_engine(engine: Engine, batch_sizes: range | list[int], num_points: int) -> None:
@@ -260,4 +293,5 @@ def warm_up_engine(engine: Engine, batch_sizes: range | list[int], num_points: i
         # Distinct random points in the unit ball: all-zero inputs would make every kNN a tie.
         points = rng.normal(size=(2, batch_size, num_points, 3)).astype(np.float32)
         points /= np.linalg.norm(points, axis=-1, keepdims=True).max()
-        engine.run(points[0], points[1])
+        warm = getattr(engine, "warm_up", engine.run)  # an engine with several sessions warms each
+        warm(points[0], points[1])

@@ -6,6 +6,8 @@ from typing import Literal
 from pydantic import Field, SecretStr, field_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
+from service.engine import available_cpus
+
 DEFAULT_MODEL_PATH = Path(__file__).resolve().parent / "models" / "ifnet.onnx"
 
 
@@ -20,16 +22,21 @@ class Settings(BaseSettings):
     threads: int | None = Field(
         None,
         ge=1,
-        description="ONNX Runtime threads for the model, shared out among `model_calls`; default: the CPUs this "
-        "process may use.",
+        description="ONNX Runtime threads of a model call that runs alone (calls beside others share them out); "
+        "default: the CPUs this process may use.",
     )
-    # On a 2-CPU virtual machine one call's two threads often get far less than 2 CPUs between them
-    # (bench/machine_check.py), while two 1-thread calls keep both busy: 2 doubled the pairs/s under
-    # load there, at the cost of a lone request's latency (docs/benchmarks.md).
+    # A call that starts alone gets every thread (a lone request's latency); calls beside it share
+    # them out. On a 2-CPU machine two 1-thread calls side by side served ~1.4x the pairs/s of one
+    # 2-thread call at a time, and batches of 2-4 cost more per pair than single pairs, on one
+    # thread or two (docs/benchmarks.md): hence these two defaults.
     model_calls: int = Field(
-        1, ge=1, le=16, description="Model calls run at once, each on `threads` / model_calls ONNX Runtime threads."
+        2,
+        ge=1,
+        le=16,
+        description="Model calls run at once (at most one per thread): one that starts alone gets all `threads`, "
+        "one that starts beside others `threads` / model_calls.",
     )
-    max_batch_size: int = Field(4, ge=1, le=64, description="Most requests run in one model call.")
+    max_batch_size: int = Field(1, ge=1, le=64, description="Most requests run in one model call.")
     max_batch_delay_ms: float = Field(
         0.0, ge=0.0, le=1000.0, description="How long a batch waits to fill up; 0 takes whatever is waiting."
     )
@@ -63,6 +70,11 @@ class Settings(BaseSettings):
         None, description="If set, /register and v2 inference need it in `X-API-Key` or `Authorization: Bearer`."
     )
     latency_window: int = Field(1000, ge=10, description="Recent /register requests the /health percentiles cover.")
+
+    @property
+    def calls_at_once(self) -> int:
+        """`model_calls`, but at most one per thread: calls beyond that would only take turns on the CPUs."""
+        return min(self.model_calls, self.threads or available_cpus())
 
     @field_validator("api_key", mode="before")
     @classmethod

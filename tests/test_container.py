@@ -313,7 +313,7 @@ def test_image_runs_as_non_root_without_torch(container, image):
     # ONNX Runtime is sized to the container's CPU limit (--cpus 2): IFNET_THREADS is not preset.
     env = run(["docker", "image", "inspect", "-f", "{{json .Config.Env}}", image], timeout=30).stdout
     assert "IFNET_THREADS" not in env
-    threads = re.search(r"with (\d+) ORT threads", container_logs(cid))
+    threads = re.search(r"on (\d+) ORT threads alone", container_logs(cid))
     assert threads is not None, f"no thread count in the log:\n{container_logs(cid)}"
     assert int(threads.group(1)) == 2
 
@@ -372,7 +372,7 @@ def test_compose_service(image, compose_implementations):
             assert limits["Memory"] > 0 and limits["RestartPolicy"]["Name"] == "unless-stopped"
             bindings = limits["PortBindings"]["8000/tcp"]
             assert all(binding["HostIp"] == "127.0.0.1" for binding in bindings), bindings
-            threads = re.search(r"with (\d+) ORT threads", container_logs(ids[0]))
+            threads = re.search(r"on (\d+) ORT threads alone", container_logs(ids[0]))
             assert threads is not None and int(threads.group(1)) == 1, container_logs(ids[0])
             report(f"{' '.join(command)}: ready after {waited:.1f} s, known pair registered, healthy")
         finally:

@@ -180,7 +180,7 @@ def payload(seed: int, count: int = 80, **options) -> bytes:
 @pytest.mark.anyio
 async def test_a_client_leaving_while_its_batch_runs_leaves_no_stuck_work(serve, tiny_model):
     engine = StepEngine(OnnxEngine(tiny_model))
-    settings = Settings(model_path=tiny_model, warmup=False, max_batch_size=4)
+    settings = Settings(model_path=tiny_model, warmup=False, max_batch_size=4, model_calls=1)  # one batch at a time
     async with serve(settings, engine=engine) as (app, client):
         state = app.state.service
         blocker = asyncio.ensure_future(client.post("/register", content=payload(0), headers=JSON))

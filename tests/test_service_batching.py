@@ -24,7 +24,8 @@ pytestmark = pytest.mark.anyio
 
 
 def settings_for(model, **overrides) -> Settings:
-    return Settings(**{"model_path": model, "warmup": False, "max_batch_size": 8, **overrides})
+    # One model call at a time, so that the pairs queued behind a running call form the next batch.
+    return Settings(**{"model_path": model, "warmup": False, "max_batch_size": 8, "model_calls": 1, **overrides})
 
 
 def pair(seed: int) -> tuple[np.ndarray, np.ndarray]:

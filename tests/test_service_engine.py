@@ -7,6 +7,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from service.engine import ModelLoadError, OnnxEngine, available_cpus, cgroup_cpu_limit
@@ -57,9 +58,38 @@ def test_engine_threads_follow_the_usable_cpus_unless_set(tiny_model):
     engine = OnnxEngine(tiny_model, threads=1)
     assert engine.threads == 1
     assert engine.session.get_session_options().intra_op_num_threads == 1
-    # concurrent calls share the threads out, and each gets at least one
-    assert OnnxEngine(tiny_model, threads=4, concurrent_calls=2).threads == 2
-    assert OnnxEngine(tiny_model, threads=1, concurrent_calls=2).threads == 1
+    # a call beside others gets a share of the threads (at least one); a lone call gets them all
+    shared = OnnxEngine(tiny_model, threads=4, concurrent_calls=2)
+    assert (shared.threads, shared.threads_beside_others) == (4, 2)
+    single = OnnxEngine(tiny_model, threads=1, concurrent_calls=2)
+    assert (single.threads, single.threads_beside_others) == (1, 1)
+
+
+def test_model_calls_are_capped_at_one_per_thread():
+    assert Settings(threads=4, model_calls=2).calls_at_once == 2
+    assert Settings(threads=1, model_calls=2).calls_at_once == 1  # two calls would only take turns
+    assert Settings(model_calls=16).calls_at_once == min(16, available_cpus())
+
+
+def test_a_lone_call_runs_on_every_thread_and_calls_beside_it_on_their_share(tiny_model):
+    engine = OnnxEngine(tiny_model, threads=2, concurrent_calls=2)
+    used = []
+
+    class Recording:  # stands in for an ORT session and records its thread count per call
+        def __init__(self, session):
+            self.session = session
+
+        def run(self, outputs, feeds):
+            used.append(self.session.get_session_options().intra_op_num_threads)
+            if len(used) == 1:  # the first call is still running when the second starts
+                engine.run(feeds["source"], feeds["target"])
+            return self.session.run(outputs, feeds)
+
+    engine._sessions = [Recording(session) for session in engine._sessions]
+    source, target = (np.random.default_rng(seed).normal(size=(1, 64, 3)).astype(np.float32) for seed in (1, 2))
+    engine.run(source, target)
+    engine.run(source, target)  # alone again once both have finished
+    assert used == [2, 1, 2]
 
 
 def test_metadata_is_read(tiny_model):
