@@ -183,8 +183,6 @@ class OnnxEngine:
     """
 
     def __init__(self, path: Path, threads: int | None = None, concurrent_calls: int = 1):
-        import onnxruntime as ort  # heavy import, kept out of modules that only need the types above
-
         path = Path(path)
         if not path.is_file():
             raise ModelLoadError(
@@ -193,10 +191,10 @@ class OnnxEngine:
         self.concurrent_calls = concurrent_calls
         self.threads = threads or available_cpus()  # of a call that runs alone
         self.threads_beside_others = max(1, self.threads // concurrent_calls)
-        self.session = _open_session(ort, path, self.threads)
+        self.session = _open_session(path, self.threads)
         self._sessions = [self.session]  # [alone, beside others] where the two thread counts differ
         if self.threads_beside_others != self.threads:
-            self._sessions.append(_open_session(ort, path, self.threads_beside_others))
+            self._sessions.append(_open_session(path, self.threads_beside_others))
         self._calls_running = 0
         self._calls_lock = threading.Lock()
 
@@ -275,7 +273,9 @@ class OnnxEngine:
         return rotation, translation
 
 
-def _open_session(ort, path: Path, threads: int):
+def _open_session(path: Path, threads: int):
+    import onnxruntime as ort  # heavy import, kept out of modules that only need the types above
+
     options = ort.SessionOptions()
     options.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
     options.intra_op_num_threads = threads
