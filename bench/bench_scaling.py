@@ -30,7 +30,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 import loadgen  # noqa: E402
 from bench_batching import free_port, start_service, wait_ready  # noqa: E402
-from bench_service import MODES  # noqa: E402
+from bench_service import BATCH_SIZE_ON, MODES  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 CLIENT_COUNTS = (1, 16)
@@ -56,13 +56,14 @@ def main() -> int:
         return 2
 
     bodies = loadgen.model_sized_bodies(768)
+    # mode -> (max batch size, model calls at once), as bench_service.py runs them by default
+    settings = {mode: (MODES[mode][0] or BATCH_SIZE_ON, MODES[mode][1]) for mode in args.modes}
     processes, urls = {}, {}
     try:
-        for mode in args.modes:
-            batch_size, model_calls = MODES[mode]
+        for mode, (batch_size, model_calls) in settings.items():
             port = free_port()
             urls[mode] = f"http://127.0.0.1:{port}"
-            processes[mode] = start_service(batch_size or 4, port, model_calls)
+            processes[mode] = start_service(batch_size, port, model_calls)
         for mode, url in urls.items():
             wait_ready(url, processes[mode])
             asyncio.run(loadgen.closed_loop(url, bodies, 4, 3.0))  # connections and first calls, unmeasured
@@ -96,8 +97,8 @@ def main() -> int:
     for mode in args.modes:
         ratios = [r[f"{mode}/16"]["pairs_per_s"] / r[f"{mode}/1"]["pairs_per_s"] for r in rounds]
         summary[mode] = {
-            "max_batch_size": MODES[mode][0] or 4,
-            "model_calls": MODES[mode][1],
+            "max_batch_size": settings[mode][0],
+            "model_calls": settings[mode][1],
             "median_ratio": statistics.median(ratios),
             "ratios": ratios,
             "median_pairs_per_s": {

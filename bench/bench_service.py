@@ -43,6 +43,7 @@ ROOT = Path(__file__).resolve().parents[1]
 # mode -> (max batch size, or None for --batch-size; model calls at once). `off` is the shipped
 # default (service/settings.py); `1call` runs one call at a time on every thread, whatever the load.
 MODES = {"off": (1, 2), "on": (None, 2), "1call": (1, 1)}
+BATCH_SIZE_ON = 4  # --batch-size's default
 DEFAULT_CLIENTS = {"model": [1, 4, 16, 64], "scan": [1, 4, 16, 64], "scan-npz": [1, 16]}
 PAYLOADS = {
     "model": lambda: loadgen.model_sized_bodies(768),
@@ -70,7 +71,7 @@ def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--clients", type=int, nargs="+", help="client counts (default: per payload, see above)")
     parser.add_argument("--payloads", nargs="+", default=list(PAYLOADS), choices=list(PAYLOADS))
-    parser.add_argument("--batch-size", type=int, default=4, help="IFNET_MAX_BATCH_SIZE with batching on")
+    parser.add_argument("--batch-size", type=int, default=BATCH_SIZE_ON, help="IFNET_MAX_BATCH_SIZE with batching on")
     parser.add_argument("--modes", nargs="+", default=list(MODES), choices=list(MODES))
     parser.add_argument("--duration", type=float, default=12.0, help="measured seconds per cell")
     parser.add_argument("--warmup", type=float, default=3.0, help="unmeasured seconds per payload")
