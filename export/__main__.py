@@ -49,6 +49,9 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     parser.add_argument("--preset-name", default=None, help="recorded in the metadata (default: from the weights file)")
     parser.add_argument("--check-pairs", type=int, default=8, help="pairs compared between torch and ONNX Runtime")
     parser.add_argument("--rotation-tol", type=float, default=1e-3, help="max |R_onnx - R_torch| per entry")
+    parser.add_argument(
+        "--translation-tol", type=float, default=1e-3, help="max |t_onnx - t_torch| per entry (unit-sphere units)"
+    )
     parser.add_argument("--angle-tol", type=float, default=0.01, help="max difference of rotation errors (deg)")
     args = parser.parse_args(argv)
     for option, count in (("--iterations", args.iterations), ("--time-steps", args.time_steps)):
@@ -84,10 +87,10 @@ def main(argv: list[str] | None = None) -> int:
             f"max |dR| {report.max_rotation_entry:.2e}, max |dt| {report.max_translation_entry:.2e}, "
             f"max rotation-error difference {report.max_angle_difference_deg:.2e} deg"
         )
-        if not report.passes(args.rotation_tol, args.angle_tol):
+        if not report.passes(args.rotation_tol, args.translation_tol, args.angle_tol):
             print(
                 f"refusing to write {args.output}: ONNX Runtime disagrees with torch beyond "
-                f"|dR| <= {args.rotation_tol} / {args.angle_tol} deg",
+                f"|dR| <= {args.rotation_tol}, |dt| <= {args.translation_tol} or {args.angle_tol} deg",
                 file=sys.stderr,
             )
             return 1

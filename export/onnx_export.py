@@ -144,8 +144,12 @@ class ParityReport:
     max_angle_difference_deg: float  # |error(ORT vs truth) - error(torch vs truth)|, when truth is known
     pairs: int
 
-    def passes(self, rotation_tol: float, angle_tol_deg: float) -> bool:
-        return self.max_rotation_entry <= rotation_tol and self.max_angle_difference_deg <= angle_tol_deg
+    def passes(self, rotation_tol: float, translation_tol: float, angle_tol_deg: float) -> bool:
+        return (
+            self.max_rotation_entry <= rotation_tol
+            and self.max_translation_entry <= translation_tol
+            and self.max_angle_difference_deg <= angle_tol_deg
+        )
 
 
 def compare_with_torch(session: ort.InferenceSession, model: IFNet, pairs: list[dict[str, np.ndarray]]) -> ParityReport:

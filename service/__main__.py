@@ -6,6 +6,7 @@ below override them.
 
 import argparse
 import logging
+import math
 import sys
 
 from pydantic import ValidationError
@@ -52,7 +53,7 @@ def main(argv: list[str] | None = None) -> int:
         host=settings.host,
         port=settings.port,
         log_level=settings.log_level,
-        timeout_graceful_shutdown=int(settings.shutdown_timeout_s),
+        timeout_graceful_shutdown=math.ceil(settings.shutdown_timeout_s),  # uvicorn takes whole seconds
     )
     return 0
 

@@ -157,6 +157,12 @@ def _install_error_handlers(app: FastAPI) -> None:
     async def on_inference_error(request: Request, error: InferenceError) -> JSONResponse:
         return _error(request, 500, f"internal error: {error}")
 
+    # Anything unforeseen: still a JSON answer. Starlette re-raises the error after this answer, so
+    # the server logs its traceback as usual.
+    @app.exception_handler(Exception)
+    async def on_unexpected(request: Request, error: Exception) -> JSONResponse:
+        return _error(request, 500, "internal error; the server log has the details")
+
     # Starlette's class, not FastAPI's subclass: FastAPI and Starlette raise the base class themselves
     # (404, 405, unparseable bodies), and those answers must have the same shape as every other error.
     @app.exception_handler(StarletteHTTPException)

@@ -28,8 +28,9 @@ class BodyLimitMiddleware:
             await self.app(scope, receive, send)
             return
         declared = dict(scope.get("headers") or []).get(b"content-length")
+        v2 = scope["path"].startswith("/v2")  # the v2 routes' errors are {"error": ...}
         if declared is not None and declared.isdigit() and int(declared) > self.max_bytes:
-            await self._reject(send)
+            await self._reject(send, v2)
             return
         received = 0
         response_started = False
@@ -54,11 +55,12 @@ class BodyLimitMiddleware:
         except BodyTooLarge:
             if response_started:
                 raise
-            await self._reject(send)
+            await self._reject(send, v2)
 
-    async def _reject(self, send: Send) -> None:
+    async def _reject(self, send: Send, v2: bool) -> None:
         detail = BodyTooLarge(self.max_bytes).detail
-        body = json.dumps({"detail": detail, "errors": [{"field": "body", "problem": detail[6:]}]}).encode()
+        answer = {"error": detail} if v2 else {"detail": detail, "errors": [{"field": "body", "problem": detail[6:]}]}
+        body = json.dumps(answer).encode()
         await send(
             {
                 "type": "http.response.start",

@@ -13,7 +13,7 @@ from fastapi.responses import JSONResponse
 
 from service import __version__
 from service.dependencies import AdmittedService, LoadedService, Service, require_api_key
-from service.registration import InvalidInput
+from service.registration import InvalidInput, as_points
 from service.schemas import (
     RegistrationOptions,
     V2Error,
@@ -102,12 +102,15 @@ def _clouds(tensor: V2Tensor) -> np.ndarray:
     if len(shape) not in (2, 3) or shape[-1] != 3 or any(size < 1 for size in shape):
         raise InvalidInput(name, f"shape must be [B, N, 3] or [N, 3], got {shape}")
     try:
-        data = np.asarray(tensor.data, dtype=np.float32)
-    except (ValueError, TypeError):
+        data = np.asarray(tensor.data, dtype=np.float64)
+    except (ValueError, TypeError, OverflowError):
         raise InvalidInput(name, "data must be numbers (flat or nested row-major)") from None
     if data.size != int(np.prod(shape)):
         raise InvalidInput(name, f"data has {data.size} values but shape {shape} needs {int(np.prod(shape))}")
-    return data.reshape(shape if len(shape) == 3 else [1, *shape]).astype(np.float64)
+    clouds = data.reshape(shape if len(shape) == 3 else [1, *shape])
+    for index, cloud in enumerate(clouds):  # finite and in range, as /register checks its clouds
+        as_points(cloud, name if len(clouds) == 1 else f"{name}[{index}]")
+    return clouds
 
 
 @router.post(

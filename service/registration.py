@@ -144,6 +144,8 @@ def as_points(value: Any, field: str) -> np.ndarray:
         if array.ndim < 2 and not isinstance(value, np.ndarray):
             raise InvalidInput(field, _describe_rows(value))
         raise InvalidInput(field, f"must be a list of [x, y, z] points (N x 3), got shape {list(array.shape)}")
+    if not isinstance(value, np.ndarray) and _has_bool(value):
+        raise InvalidInput(field, _describe_rows(value))
     array = array.astype(np.float64, copy=False)
     finite = np.isfinite(array).all(axis=1)
     if not finite.all():
@@ -158,6 +160,11 @@ def as_points(value: Any, field: str) -> np.ndarray:
     return array
 
 
+def _has_bool(value: Any) -> bool:
+    """Whether N x 3 nested rows hold a true/false, which numpy would quietly read as 1/0 (~15 ms per 100k points)."""
+    return any(type(coordinate) is bool for row in value for coordinate in row)
+
+
 def _describe_rows(value: Any) -> str:
     """Why nested lists are not N x 3 numbers, pointing at the first bad row."""
     if not isinstance(value, Sequence) or isinstance(value, str | bytes):
@@ -170,6 +177,8 @@ def _describe_rows(value: Any) -> str:
         for coordinate in row:
             if isinstance(coordinate, bool) or not isinstance(coordinate, int | float):
                 return f"point {index} has a non-numeric coordinate {coordinate!r}"
+            if abs(coordinate) > MAX_COORDINATE:
+                return f"point {index} has a coordinate beyond ±{MAX_COORDINATE:g}; shift or rescale the cloud first"
     return "must be a list of [x, y, z] points (N x 3)"
 
 
@@ -192,6 +201,8 @@ def as_rigid_transform(value: Any, field: str = "init") -> np.ndarray:
             f"and its last row [0, 0, 0, 1] (deviation {error:.3g}, tolerance {INIT_RIGIDITY_TOLERANCE:g})",
         )
     rotation, translation = from_matrix(matrix)
+    if np.abs(translation).max() > MAX_COORDINATE:
+        raise InvalidInput(field, f"has a translation beyond ±{MAX_COORDINATE:g}, like the clouds' coordinates")
     return to_matrix(nearest_rotation(rotation), translation)
 
 

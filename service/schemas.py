@@ -19,19 +19,37 @@ from service.registration import InvalidInput, as_points, as_rigid_transform
 
 
 def _example_pair() -> tuple[list[list[float]], list[list[float]], list[list[float]]]:
-    """A small helix (48 points) and the same helix turned 30 degrees about z and shifted."""
-    angle = np.linspace(0.0, 4.0 * np.pi, 48)
-    source = np.stack([np.cos(angle), np.sin(angle), 0.1 * angle], axis=1)
+    """A small table (48 points: a top and two legs of different sizes) and the same table turned 30
+    degrees about z and shifted. No symmetry, so the transform is unique (tests/test_service_accuracy.py
+    registers it with the shipped model)."""
+    rng = np.random.default_rng(0)
+    top, long_leg, short_leg = (  # boxes as (centre, half-size)
+        ((0.0, 0.0, 0.0), (1.0, 0.6, 0.1)),
+        ((0.4, 0.25, 0.5), (0.15, 0.1, 0.5)),
+        ((-0.4, -0.2, 0.3), (0.1, 0.1, 0.3)),
+    )
+    source = np.array(
+        [np.add(centre, rng.uniform(-1.0, 1.0, 3) * half) for centre, half in [top, long_leg, short_leg] * 16]
+    )
     turn = np.radians(30.0)
     rotation = np.array([[np.cos(turn), -np.sin(turn), 0.0], [np.sin(turn), np.cos(turn), 0.0], [0.0, 0.0, 1.0]])
     translation = np.array([0.2, -0.1, 0.05])
+    source = np.round(source, 4)
     target = source @ rotation.T + translation
     transform = np.eye(4)
     transform[:3, :3], transform[:3, 3] = rotation, translation
-    return np.round(source, 4).tolist(), np.round(target, 4).tolist(), np.round(transform, 4).tolist()
+    return source.tolist(), np.round(target, 4).tolist(), np.round(transform, 4).tolist()
 
 
 EXAMPLE_SOURCE, EXAMPLE_TARGET, EXAMPLE_TRANSFORM = _example_pair()
+# The shipped network's answer to the first request example (0.38 degrees from EXAMPLE_TRANSFORM;
+# with `refine`, 0.001 degrees), rounded.
+EXAMPLE_ANSWER = [
+    [0.8653, -0.5013, -0.0037, 0.2046],
+    [0.5012, 0.8653, -0.0053, -0.0911],
+    [0.0059, 0.0027, 1.0, 0.05],
+    [0.0, 0.0, 0.0, 1.0],
+]
 IDENTITY = np.eye(4).tolist()
 
 
@@ -84,10 +102,12 @@ class RefineOptions(BaseModel):
     max_distance: float | None = Field(
         None,
         gt=0,
+        strict=True,  # true/false are not distances
+        allow_inf_nan=False,
         description="Largest point-pair distance ICP uses, in your units. Default: 0.05 in the normalised frame "
         "(5% of the radius of the larger resampled cloud), converted to your units.",
     )
-    max_iterations: int = Field(30, ge=1, le=500, description="Most ICP iterations.")
+    max_iterations: int = Field(30, ge=1, le=500, strict=True, description="Most ICP iterations.")
 
 
 class RegistrationOptions(BaseModel):
@@ -104,15 +124,20 @@ class RegistrationOptions(BaseModel):
     max_points: int | None = Field(
         None,
         ge=8,
+        strict=True,
         description="Points per cloud given to the network (default: the model's native count). Larger clouds are "
         "subsampled to it, smaller ones upsampled by repeating points.",
     )
     sampling: Literal["fps", "random"] = Field(
         "fps", description="Subsampling: deterministic farthest-point (`fps`) or seeded random (`random`)."
     )
-    seed: int = Field(0, ge=0, le=2**32 - 1, description="Seed of random sampling and upsampling.")
+    seed: int = Field(0, ge=0, le=2**32 - 1, strict=True, description="Seed of random sampling and upsampling.")
     fitness_threshold: float | None = Field(
-        None, gt=0, description="Inlier distance for `fitness` and `inlier_rmse`, your units (default as ICP's)."
+        None,
+        gt=0,
+        strict=True,
+        allow_inf_nan=False,
+        description="Inlier distance for `fitness` and `inlier_rmse`, your units (default as ICP's).",
     )
 
     @field_validator("refine", mode="before")
@@ -193,12 +218,12 @@ class RegisterResponse(BaseModel):
         json_schema_extra={
             "examples": [
                 {
-                    "rotation": [row[:3] for row in EXAMPLE_TRANSFORM[:3]],
-                    "translation": [row[3] for row in EXAMPLE_TRANSFORM[:3]],
-                    "transform": EXAMPLE_TRANSFORM,
+                    "rotation": [row[:3] for row in EXAMPLE_ANSWER[:3]],
+                    "translation": [row[3] for row in EXAMPLE_ANSWER[:3]],
+                    "transform": EXAMPLE_ANSWER,
                     "fitness": 1.0,
-                    "inlier_rmse": 0.0004,
-                    "fitness_threshold": 0.0736,
+                    "inlier_rmse": 0.009,
+                    "fitness_threshold": 0.0486,
                     "points": {
                         "source": {"received": 48, "duplicates_removed": 0, "network_points": 768, "upsampled": True},
                         "target": {"received": 48, "duplicates_removed": 0, "network_points": 768, "upsampled": True},
@@ -206,18 +231,18 @@ class RegisterResponse(BaseModel):
                     "refinement": None,
                     "model": {
                         "name": "ifnet",
-                        "version": "3f2a9c01d4e5",
-                        "weights_sha256": None,
-                        "file_sha256": "3f2a9c01d4e5" + "0" * 52,
+                        "version": "ca91aa32a6d4",
+                        "weights_sha256": "ca91aa32a6d47a70244a359ce08fb45dbb45fb80c0d2126a7149bdf37078f76c",
+                        "file_sha256": "a50a0e58ddcabf7935ff71c8d5a853735eba4d304129312aea2a5794eeb23e52",
                         "preset": "fast",
                         "native_num_points": 768,
                     },
                     "timings_ms": {
-                        "queue_ms": 0.2,
-                        "inference_ms": 87.0,
-                        "preprocess_ms": 9.5,
-                        "postprocess_ms": 1.1,
-                        "total_ms": 99.0,
+                        "queue_ms": 0.1,
+                        "inference_ms": 88.7,
+                        "preprocess_ms": 1.1,
+                        "postprocess_ms": 0.6,
+                        "total_ms": 91.0,
                         "batch_size": 1,
                     },
                 }
@@ -357,20 +382,20 @@ class V2InferResponse(BaseModel):
             "examples": [
                 {
                     "model_name": "ifnet",
-                    "model_version": "3f2a9c01d4e5",
+                    "model_version": "ca91aa32a6d4",
                     "id": "pair-1",
                     "outputs": [
                         {
                             "name": "rotation",
                             "shape": [1, 3, 3],
                             "datatype": "FP32",
-                            "data": [v for row in EXAMPLE_TRANSFORM[:3] for v in row[:3]],
+                            "data": [v for row in EXAMPLE_ANSWER[:3] for v in row[:3]],
                         },
                         {
                             "name": "translation",
                             "shape": [1, 3],
                             "datatype": "FP32",
-                            "data": [row[3] for row in EXAMPLE_TRANSFORM[:3]],
+                            "data": [row[3] for row in EXAMPLE_ANSWER[:3]],
                         },
                     ],
                 }

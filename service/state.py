@@ -107,6 +107,11 @@ class ServiceState:
         """
         assert self.batcher is not None
         params = self.params(options)
+        room = self.batcher.max_queue_size
+        if len(pairs) > room:  # could never be queued at once, however long the client waited
+            raise InvalidInput(
+                "source", f"holds {len(pairs)} pairs, more than this service queues at once; send at most {room}"
+            )
         # No wait limit of the batcher's own: the request's deadline (see `deadline`) bounds the
         # whole request, and cancelling it drops the pair from the queue.
         predict = self.batcher.submit

@@ -5,7 +5,7 @@ from typing import TypeVar
 
 import numpy as np
 from fastapi import HTTPException
-from pydantic import BaseModel
+from pydantic import BaseModel, ValidationError
 from starlette.datastructures import UploadFile
 from starlette.requests import Request
 
@@ -46,6 +46,12 @@ async def read_register_body(
 
     Raises UnsupportedMediaType (415), InvalidInput or pydantic's ValidationError (422).
     """
+    unknown = sorted(set(request.query_params) - {"options"})
+    if unknown:
+        raise InvalidInput(
+            unknown[0],
+            "unknown query parameter; put options in the JSON body (or in `?options=<JSON>` for NPY/NPZ bodies)",
+        )
     media = media_type(request)
     if media in JSON_TYPES or media.endswith("+json"):
         if query_options is not None:
@@ -68,7 +74,7 @@ async def read_register_body(
 async def _read_multipart(
     request: Request, query_options: str | None, settings: Settings
 ) -> tuple[np.ndarray, np.ndarray, RegistrationOptions]:
-    async with request.form(max_files=2, max_fields=2) as form:
+    async with request.form(max_files=3, max_fields=3) as form:  # source, target and options (field or file)
         unexpected = sorted(set(form.keys()) - {"source", "target", "options"})
         if unexpected:
             raise InvalidInput(
@@ -98,4 +104,12 @@ async def _read_multipart(
 def _options(text: str | None) -> RegistrationOptions:
     if text is None or not text.strip():
         return RegistrationOptions()
-    return RegistrationOptions.model_validate_json(text)
+    try:
+        return RegistrationOptions.model_validate_json(text)
+    except ValidationError as error:
+        unreadable = [e for e in error.errors() if e["type"] == "json_invalid"]
+        if unreadable:
+            reason = (unreadable[0].get("ctx") or {}).get("error", "")
+            example = '{"refine": true}'
+            raise InvalidInput("options", f"is not valid JSON ({reason}); send an object like {example}") from None
+        raise

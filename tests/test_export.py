@@ -27,6 +27,7 @@ from export.onnx_export import (  # noqa: E402
     DEFAULT_OUTPUT,
     DEFAULT_WEIGHTS,
     DYNAMIC_AXES,
+    ParityReport,
     RegistrationGraph,
     compare_with_torch,
     export_onnx,
@@ -149,7 +150,7 @@ def test_one_iteration_one_step_random_model_end_to_end(tmp_path):
 
 
 def test_dynamic_batch_and_point_counts(tmp_path):
-    """Batch and both point counts are dynamic: other sizes than the export example run."""
+    """Batch and both point counts are dynamic: other sizes than the export example run, as in torch."""
     torch.manual_seed(2)
     model = IFNet(preset("fast", n_iters=1, time_steps=2)).eval()
     path = tmp_path / "dynamic.onnx"
@@ -161,16 +162,15 @@ def test_dynamic_batch_and_point_counts(tmp_path):
         ["rotation", "translation"],
         DYNAMIC_AXES,
     )
-    session = ort_session(path)
-    rotation, translation = session.run(
-        None,
-        {
-            "source": np.random.rand(3, 300, 3).astype(np.float32),
-            "target": np.random.rand(3, 420, 3).astype(np.float32),
-        },
-    )
+    rng = np.random.default_rng(2)
+    source, target = rng.random((3, 300, 3), dtype=np.float32), rng.random((3, 420, 3), dtype=np.float32)
+    rotation, translation = ort_session(path).run(None, {"source": source, "target": target})
     assert rotation.shape == (3, 3, 3) and translation.shape == (3, 3)
     np.testing.assert_allclose(np.linalg.det(rotation), 1.0, atol=1e-5)
+    with torch.no_grad():  # and at those sizes the graph still computes what torch does
+        out = model(torch.from_numpy(source), torch.from_numpy(target))
+    assert np.abs(rotation - out.rotation.numpy()).max() <= 1e-3
+    assert np.abs(translation - out.translation.numpy()).max() <= 1e-3
 
 
 @pytest.mark.skipif(not SHIPPED, reason="no shipped weights and ONNX model in the checkout")
@@ -194,6 +194,7 @@ def test_committed_onnx_matches_committed_weights():
 
     report = compare_with_torch(session, model, evaluation_pairs(6, seed=11))
     assert report.max_rotation_entry <= 1e-3, report
+    assert report.max_translation_entry <= 1e-3, report
     assert report.max_angle_difference_deg <= 0.01, report
 
 
@@ -224,6 +225,28 @@ def test_export_command_records_the_unroll(tmp_path):
     config = json.loads(metadata["config"])
     assert (config["n_iters"], config["time_steps"]) == (2, 1)
     assert metadata["weights_sha256"] == file_sha256(DEFAULT_WEIGHTS)
+    exported = IFNetConfig.from_dict(config)
+    assert (metadata["num_points"], metadata["min_points"]) == (str(exported.num_points), str(exported.graph_k))
     for option in ("--iterations", "--time-steps"):
         with pytest.raises(SystemExit):
             parse_args([option, "0"])
+
+
+def test_parity_fails_on_any_of_its_three_measures():
+    report = ParityReport(max_rotation_entry=1e-4, max_translation_entry=1e-4, max_angle_difference_deg=1e-3, pairs=2)
+    assert report.passes(rotation_tol=1e-3, translation_tol=1e-3, angle_tol_deg=0.01)
+    assert not report.passes(rotation_tol=1e-5, translation_tol=1e-3, angle_tol_deg=0.01)
+    assert not report.passes(rotation_tol=1e-3, translation_tol=1e-5, angle_tol_deg=0.01)
+    assert not report.passes(rotation_tol=1e-3, translation_tol=1e-3, angle_tol_deg=1e-4)
+
+
+@pytest.mark.skipif(not DEFAULT_WEIGHTS.exists(), reason="no shipped weights in the checkout")
+def test_export_command_refuses_to_write_a_file_that_disagrees_with_torch(tmp_path, capsys):
+    from export.__main__ import main
+
+    output = tmp_path / "ifnet.onnx"
+    # A negative tolerance no difference can meet stands in for an export that disagrees.
+    argv = ["--iterations", "1", "--time-steps", "1", "--output", str(output), "--check-pairs", "1"]
+    assert main([*argv, "--translation-tol", "-1"]) == 1
+    assert not output.exists()
+    assert "refusing to write" in capsys.readouterr().err

@@ -5,13 +5,22 @@ import pytest
 
 torch = pytest.importorskip("torch", reason="the model tests need torch (pip install -e '.[train]')")
 
-from model.ifnet import FeedbackRegistrationBlock, FeedbackTransformer, IFNet, IFNetConfig, preset  # noqa: E402
+from model.ifnet import (  # noqa: E402
+    BlockOutput,
+    FeedbackRegistrationBlock,
+    FeedbackTransformer,
+    IFNet,
+    IFNetConfig,
+    preset,
+)
 from model.ops import fused_knn, gather_rows, knn, neighbourhood_sum, transform_points  # noqa: E402
 from model.training.data import Protocol, make_pair, synthetic_shape  # noqa: E402
 from model.training.losses import (  # noqa: E402
     Losses,
     global_registration_loss,
+    huber,
     ifnet_losses,
+    keypoints,
     neighbourhood_consistency_loss,
     pseudo_consistency_loss,
     teacher_consistency_loss,
@@ -175,14 +184,26 @@ def test_config_rejects_counts_and_widths_below_one():
     assert IFNetConfig(n_iters=1, time_steps=1).n_iters == 1
 
 
-def test_every_size_is_a_config_field():
-    """Changing a config width changes the module sizes: nothing is a hidden literal."""
-    small = IFNet(preset("fast")).num_parameters()
-    wider = IFNet(preset("fast", emb_dims=96)).num_parameters()
-    assert wider > small
+WIDTH_FIELDS = {
+    "edgeconv_widths": (32, 48, 64, 128),
+    "emb_dims": 96,
+    "pos_hidden": 48,
+    "attention_hidden": 96,
+    "overlap_width": 12,
+    "overlap_hidden": 24,
+}
+
+
+@pytest.mark.parametrize("field", WIDTH_FIELDS)
+def test_every_width_is_a_config_field(field):
+    """Changing any config width changes the parameter count: no layer width is a hidden literal."""
+    base = IFNet(preset("fast")).num_parameters()
+    assert IFNet(preset("fast", **{field: WIDTH_FIELDS[field]})).num_parameters() != base
+
+
+def test_config_round_trips_and_paper_preset_has_the_paper_size():
     assert IFNet(preset("paper")).num_parameters() > 200_000  # paper sizes: ~230k parameters
-    cfg = IFNetConfig.from_dict(preset("paper").to_dict())
-    assert cfg == preset("paper")
+    assert IFNetConfig.from_dict(preset("paper").to_dict()) == preset("paper")
 
 
 # ------------------------------------------------------------------ losses
@@ -191,8 +212,6 @@ def test_every_size_is_a_config_field():
 def perfect_block(rotation_error_deg: float = 0.0):
     """A hand-built block output whose pseudo target is the exact motion of the source."""
     from scipy.spatial.transform import Rotation
-
-    from model.ifnet import BlockOutput
 
     rng = np.random.default_rng(0)
     source = torch.from_numpy(synthetic_shape(rng, 512))[None]
@@ -233,12 +252,27 @@ def test_global_weight_scales_only_the_global_loss():
     assert losses.weighted(global_weight=10.0).item() == 10.0
 
 
+def test_huber_is_quadratic_below_the_margin_and_linear_above_it():
+    x = torch.tensor([0.0, 0.004, 0.01, 0.03, 1.0])
+    margin = 0.01
+    # 0.5 x^2 below the margin, margin * x - margin^2 / 2 from it on; the two meet at the margin.
+    expected = torch.tensor([0.0, 0.5 * 0.004**2, 0.5 * 0.01**2, 0.01 * 0.03 - 0.5e-4, 0.01 - 0.5e-4])
+    torch.testing.assert_close(huber(x, margin), expected)
+
+
+def test_keypoints_are_the_highest_weighted_source_points():
+    weights = torch.tensor([[0.1, 0.9, 0.5, 0.7, 0.2], [0.8, 0.1, 0.3, 0.2, 0.95]])
+    block = BlockOutput(*([None] * 4), weights, None, None)
+    assert keypoints(block, 2).sort(dim=1).values.tolist() == [[1, 3], [0, 4]]
+    assert keypoints(block, 99).shape == (2, 5)  # never more than there are points
+
+
 def test_teacher_consistency_measures_each_blocks_distance_from_the_taught_pose():
     """Two blocks, the second completing the teacher's pose: the loss is the first block's mean
     point distance from the taught positions, halved (the second contributes zero)."""
     from scipy.spatial.transform import Rotation
 
-    from model.ifnet import BlockOutput, IFNetOutput
+    from model.ifnet import IFNetOutput
     from model.ops import compose
 
     source = torch.rand(1, 64, 3) - 0.5

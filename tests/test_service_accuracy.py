@@ -115,3 +115,27 @@ async def test_the_trained_network_registers_a_scene_scanned_twice(serve, shippe
     assert rotation_error < 0.2, f"refined {rotation_error:.3f} deg (network alone {network_error:.3f} deg)"
     size = radius(first)
     assert translation_error < 2e-3 * size, f"translation {translation_error:.4g}, radius {size:.3g}"
+
+
+async def test_the_documented_examples_register_as_documented(serve, shipped_model):
+    """The /register request examples shown in /docs (a small table turned 30 degrees) give the
+    documented answer.
+
+    Stated tolerances: the network alone within 1 degree of the example's motion and of the
+    documented answer's rotation, refined within 0.01 degrees; every point an inlier.
+    """
+    from service.schemas import EXAMPLE_TRANSFORM, RegisterResponse
+
+    trained_model_or_skip(shipped_model)
+    truth = np.asarray(EXAMPLE_TRANSFORM)[:3, :3]
+    documented = np.asarray(RegisterResponse.model_config["json_schema_extra"]["examples"][0]["rotation"])
+    async with serve(Settings(model_path=shipped_model, warmup=False)) as (app, client):
+        openapi = (await client.get("/openapi.json")).json()
+        shown = openapi["paths"]["/register"]["post"]["requestBody"]["content"]["application/json"]["examples"]
+        answers = {name: (await client.post("/register", json=shown[name]["value"])).json() for name in shown}
+    network, refined = (np.asarray(answers[name]["rotation"]) for name in ("plain", "refined"))
+    assert rotation_angle_deg(network, truth) < 1.0
+    assert rotation_angle_deg(network, documented) < 1.0
+    assert answers["refined"]["refinement"] is not None
+    assert rotation_angle_deg(refined, truth) < 0.01
+    assert [answer["fitness"] for answer in answers.values()] == [1.0, 1.0]

@@ -17,6 +17,7 @@ from service.settings import Settings
 pytestmark = pytest.mark.anyio
 
 RNG = np.random.default_rng(7)
+JSON_HEADERS = {"content-type": "application/json"}
 SOURCE = RNG.normal(size=(120, 3))
 TARGET = SOURCE @ np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]]).T + [0.5, -0.2, 0.1]
 
@@ -80,6 +81,16 @@ async def test_register_answers_with_a_consistent_transform(serve, tiny_model):
     assert timings["batch_size"] == 1 and timings["total_ms"] >= timings["inference_ms"] >= 0
 
 
+async def test_user_thresholds_reach_the_pipeline_and_are_echoed(serve, tiny_model):
+    options = {"fitness_threshold": 0.05, "refine": {"max_distance": 0.2, "max_iterations": 3}}
+    async with serve(settings_for(tiny_model)) as (app, client):
+        default = (await client.post("/register", json=body(refine=True))).json()
+        chosen = (await client.post("/register", json=body(**options))).json()
+    assert chosen["fitness_threshold"] == 0.05 and default["fitness_threshold"] != 0.05
+    assert chosen["refinement"]["max_distance"] == 0.2 and default["refinement"]["max_distance"] != 0.2
+    assert 1 <= chosen["refinement"]["iterations"] <= 3
+
+
 async def test_duplicates_are_removed_and_counted(serve, tiny_model):
     source = np.concatenate([SOURCE, SOURCE[:30]])
     async with serve(settings_for(tiny_model)) as (app, client):
@@ -111,6 +122,12 @@ VALID_INIT = [[1, 0, 0, 0.5], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]]
         (body(refine={"max_distance": -1}), "refine", "greater than 0"),
         (body(refinement=True), "refinement", "Extra inputs are not permitted"),
         ({"source": SOURCE.tolist()}, "target", "Field required"),
+        (body(init=[[1, 0, 0, 1e300], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]]), "init", "translation beyond"),
+        (body(source=[[1.5, True, 0.5]] + SOURCE.tolist()), "source", "point 0 has a non-numeric coordinate True"),
+        (body(source=[[2**64, 0, 0]] + SOURCE.tolist()), "source", r"point 0 has a coordinate beyond ±1e\+12"),
+        (body(seed=True), "seed", "valid integer"),
+        (body(fitness_threshold=float("inf")), "fitness_threshold", "finite number"),
+        (body(refine={"max_distance": float("inf")}), "refine", "finite number"),
     ],
     ids=[
         "not-Nx3",
@@ -129,11 +146,18 @@ VALID_INIT = [[1, 0, 0, 0.5], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]]
         "refine-distance",
         "unknown-field",
         "missing-target",
+        "init-translation-too-large",
+        "boolean-coordinate",
+        "integer-too-large",
+        "boolean-seed",
+        "infinite-fitness-threshold",
+        "infinite-refine-distance",
     ],
 )
 async def test_invalid_json_requests_get_422_naming_the_field(serve, tiny_model, payload, field, message):
     async with serve(settings_for(tiny_model)) as (app, client):
-        response = await client.post("/register", json=payload)
+        # json.dumps writes Infinity/NaN as JavaScript does, which httpx's json= refuses to send.
+        response = await client.post("/register", content=json.dumps(payload), headers=JSON_HEADERS)
     assert response.status_code == 422, response.text
     answer = response.json()
     assert answer["detail"].startswith(field) and any(error["field"].startswith(field) for error in answer["errors"])
@@ -183,12 +207,17 @@ async def test_bodies_over_the_limit_get_413(serve, tiny_model):
         declared = await client.post("/register", content=encoded, headers={"content-type": "application/json"})
         streamed = await client.post("/register", content=chunks(), headers={"content-type": "application/json"})
         upload = await client.post("/register", files={"source": ("a.npy", b"\x93NUMPY" + b"0" * 60_000)})
+        v2_declared = await client.post("/v2/models/ifnet/infer", content=encoded)
+        v2_streamed = await client.post("/v2/models/ifnet/infer", content=chunks())
         metrics = (await client.get("/metrics")).text
     assert 'ifnet_http_requests_total{method="POST",route="/register",status="413"} 3.0' in metrics
     for response in (declared, streamed, upload):
         assert response.status_code == 413, response.text
         assert "larger than the limit of 50000 bytes" in response.json()["detail"]
     assert "content-length" not in {key.lower() for key in streamed.request.headers}
+    for response in (v2_declared, v2_streamed):  # in the v2 error shape
+        assert response.status_code == 413 and set(response.json()) == {"error"}, response.text
+        assert "larger than the limit of 50000 bytes" in response.json()["error"]
 
 
 @pytest.mark.parametrize("content_type", ["text/plain", "application/xml", None])
@@ -238,6 +267,30 @@ async def test_multipart_errors(serve, tiny_model):
     assert nan_file.status_code == 422 and "NaN" in nan_file.json()["detail"]
 
 
+async def test_options_may_be_a_file_part(serve, tiny_model):
+    clouds = {"source": ("s.ply", ply_file(SOURCE)), "target": ("t.ply", ply_file(TARGET))}
+    async with serve(settings_for(tiny_model)) as (app, client):
+        as_file = await client.post(
+            "/register", files={**clouds, "options": ("options.json", b'{"refine": true}', "application/json")}
+        )
+    assert as_file.status_code == 200, as_file.text
+    assert as_file.json()["refinement"] is not None
+
+
+async def test_query_parameters_other_than_options_are_refused(serve, tiny_model):
+    """A misplaced option (`?refine=true` with a JSON body) must not be silently dropped."""
+    async with serve(settings_for(tiny_model)) as (app, client):
+        misplaced = await client.post("/register", json=body(), params={"refine": "true"})
+        bad_options = await client.post(
+            "/register", content=npy_file(np.stack([SOURCE, TARGET])), headers={"content-type": "application/x-npy"},
+            params={"options": "{refine: true}"},
+        )  # fmt: skip
+    assert misplaced.status_code == 422
+    assert misplaced.json()["errors"] == [{"field": "refine", "problem": misplaced.json()["detail"][len("refine: ") :]}]
+    assert "put options in the JSON body" in misplaced.json()["detail"]
+    assert bad_options.status_code == 422 and bad_options.json()["detail"].startswith("options: is not valid JSON")
+
+
 async def test_raw_npy_and_npz_bodies(serve, tiny_model):
     pair = np.stack([SOURCE, TARGET])
     archive = io.BytesIO()
@@ -266,6 +319,27 @@ async def test_raw_npy_and_npz_bodies(serve, tiny_model):
         assert response.json()["refinement"]["iterations"] >= 1
     assert raw_ply.status_code == 415 and "multipart" in raw_ply.json()["detail"]
     assert options_twice.status_code == 422 and options_twice.json()["detail"].startswith("options:")
+
+
+async def test_an_unforeseen_error_is_still_a_json_answer(tiny_model, monkeypatch):
+    """A bug past the input checks answers 500 in the route's error shape; the traceback goes to the log."""
+    import httpx
+
+    from service import routes
+    from service.app import create_app
+
+    def broken(*args, **kwargs):
+        raise RuntimeError("a bug")
+
+    monkeypatch.setattr(routes, "to_response", broken)
+    app = create_app(settings_for(tiny_model))
+    async with app.router.lifespan_context(app):
+        await asyncio.wait_for(app.state.service.ready.wait(), timeout=60)
+        transport = httpx.ASGITransport(app=app, raise_app_exceptions=False)  # as a real server answers
+        async with httpx.AsyncClient(transport=transport, base_url="http://testserver") as client:
+            response = await client.post("/register", json=body())
+    assert response.status_code == 500
+    assert response.json() == {"detail": "internal error; the server log has the details", "errors": []}
 
 
 async def test_api_key(serve, tiny_model):
@@ -455,12 +529,32 @@ async def test_v2_infer_matches_register_for_each_pair_of_a_batch(serve, tiny_mo
             ],
             r"source[1]: is degenerate",
         ),  # fmt: skip
+        (
+            [{**v2_tensor("source", SOURCE[None]), "data": [float("nan")] * 360}, v2_tensor("target", TARGET[None])],
+            "source: 120 point(s) have NaN or infinite coordinates",
+        ),
+        (
+            [{**v2_tensor("source", SOURCE[None]), "data": [1e39] * 360}, v2_tensor("target", TARGET[None])],
+            "source: has coordinates beyond",
+        ),
+        ([v2_tensor("source", np.stack([SOURCE] * 9)), v2_tensor("target", np.stack([TARGET] * 9))], "at most 8"),
     ],
-    ids=["missing-target", "datatype", "shape", "size", "batch-mismatch", "names-the-pair"],
+    ids=[
+        "missing-target",
+        "datatype",
+        "shape",
+        "size",
+        "batch-mismatch",
+        "names-the-pair",
+        "nan",
+        "beyond-fp32",
+        "batch-beyond-the-queue",
+    ],
 )
 async def test_v2_errors_use_the_v2_error_format(serve, tiny_model, inputs, message):
-    async with serve(settings_for(tiny_model)) as (app, client):
-        response = await client.post("/v2/models/ifnet/infer", json={"inputs": inputs})
+    async with serve(settings_for(tiny_model, max_queue_size=8)) as (app, client):
+        request = json.dumps({"inputs": inputs})
+        response = await client.post("/v2/models/ifnet/infer", content=request, headers=JSON_HEADERS)
     assert response.status_code == 422, response.text
     assert set(response.json()) == {"error"} and message in response.json()["error"]
 

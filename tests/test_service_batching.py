@@ -142,12 +142,25 @@ async def test_a_full_queue_answers_429_with_retry_after(serve, tiny_model, gate
         accepted = await asyncio.gather(running, *queued)
         metrics = metric_samples((await client.get("/metrics")).text)
     assert rejected.status_code == 429
-    assert int(rejected.headers["retry-after"]) >= 1
-    assert "queue is full" in rejected.json()["detail"]
+    # Two queued pairs fit one batch of 8, so two batches are ahead (that one and the running
+    # one), at the starting estimate of 1 s per call (no call has finished yet).
+    assert rejected.headers["retry-after"] == "2"
+    assert "queue is full; retry after 2 s" in rejected.json()["detail"]
     assert health["queue_depth"] == 2 and health["in_flight"] == 3
     assert [response.status_code for response in accepted] == [200, 200, 200]
     assert metrics["ifnet_batcher_rejections_total{reason=queue_full}"] == 1
     assert metrics["ifnet_http_requests_total{method=POST,route=/register,status=429}"] == 1
+
+
+def test_retry_after_is_the_batches_ahead_times_a_recent_call_over_the_calls_at_once():
+    batcher = MicroBatcher(object(), max_batch_size=4, max_queue_size=16, concurrent_calls=2)
+    batcher._batch_seconds = 3.0  # the running estimate of one call
+    for waiting, seconds in ((0, 2), (4, 3), (5, 5), (9, 6), (16, 8)):
+        batcher._waiting = waiting  # ceil(waiting / 4) batches queued, plus the one running
+        assert batcher.retry_after_s() == seconds, waiting
+    batcher._batch_seconds = 0.01
+    assert batcher.retry_after_s() == 1  # never "retry after 0 s"
+    batcher._executor.shutdown()
 
 
 async def test_requests_beyond_the_in_flight_limit_get_429_before_their_body_is_read(serve, tiny_model, gated_engine):

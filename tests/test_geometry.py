@@ -1,0 +1,52 @@
+"""The torch-free geometry shared by evaluation and the service: error metrics and fitness."""
+
+import numpy as np
+import pytest
+
+from model.geometry import euler_to_matrix, fitness_and_rmse, registration_errors, summarise_errors
+
+
+def test_euler_errors_wrap_around_the_half_turn():
+    """179 and -179 degrees about z are 2 degrees apart, not 358."""
+    truth = euler_to_matrix(np.array([[179.0, 10.0, 5.0]]))
+    predicted = euler_to_matrix(np.array([[-179.0, 10.0, 5.0]]))
+    errors = registration_errors(predicted, np.array([[0.1, 0.0, -0.2]]), truth, np.zeros((1, 3)))
+    np.testing.assert_allclose(errors["euler_abs"], [[2.0, 0.0, 0.0]], atol=1e-9)
+    np.testing.assert_allclose(errors["rotation_deg"], [2.0], atol=1e-9)
+    np.testing.assert_allclose(errors["trans_abs"], [[0.1, 0.0, 0.2]])
+    np.testing.assert_allclose(errors["translation"], [np.hypot(0.1, 0.2)])
+
+
+def test_summary_is_the_papers_table_plus_recall():
+    errors = {
+        "euler_abs": np.array([[1.0, 0.0, 0.0], [3.0, 0.0, 0.0]]),
+        "trans_abs": np.array([[0.0, 0.0, 0.0], [0.03, 0.04, 0.0]]),
+        "rotation_deg": np.array([0.5, 3.0]),
+        "translation": np.array([0.005, 0.05]),
+    }
+    summary = summarise_errors(errors)
+    assert summary["mae_r"] == pytest.approx(4.0 / 6)
+    assert summary["rmse_r"] == pytest.approx(np.sqrt(10.0 / 6))
+    assert summary["mae_t"] == pytest.approx(0.07 / 6)
+    assert summary["rmse_t"] == pytest.approx(np.sqrt(0.0025 / 6))
+    assert summary["iso_r_mean"] == pytest.approx(1.75)
+    assert summary["iso_r_median"] == pytest.approx(1.75)
+    assert summary["iso_t_mean"] == pytest.approx(0.0275)
+    assert summary["recall_1deg_001"] == 0.5  # the first pair only
+    assert summary["recall_5deg_005"] == 0.5  # 0.05 is not below 0.05
+
+
+def test_fitness_counts_the_source_points_near_the_target_and_their_rms_distance():
+    target = np.random.default_rng(0).uniform(-1, 1, (200, 3)) * 10  # points ~1 apart or more
+    source = target[:10].copy()
+    source[:7] += [0.03, 0.0, 0.04]  # 0.05 off: inliers at threshold 0.1
+    source[7:] += [0.0, 0.0, 0.02]
+    source[9] = [100.0, 100.0, 100.0]  # nowhere near the target
+    fitness, rmse = fitness_and_rmse(source, target, threshold=0.1)
+    assert fitness == pytest.approx(0.9)
+    assert rmse == pytest.approx(np.sqrt((7 * 0.05**2 + 2 * 0.02**2) / 9))
+
+
+def test_fitness_is_zero_when_nothing_is_within_the_threshold():
+    target = np.zeros((5, 3))
+    assert fitness_and_rmse(target + 1.0, target, threshold=0.5) == (0.0, 0.0)
