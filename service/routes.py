@@ -150,16 +150,29 @@ async def register(
     return to_response(result, service.model_description(), started)
 
 
-@router.get("/health", response_model=HealthResponse, summary="Liveness", tags=["operations"])
-async def health(service: Service) -> HealthResponse:
-    """Cheap liveness check that never touches the model, with recent /register latency percentiles."""
-    return HealthResponse(
+@router.get(
+    "/health",
+    response_model=HealthResponse,
+    responses={503: {"model": HealthResponse, "description": "The model's warm-up failed: restart the process."}},
+    summary="Liveness",
+    tags=["operations"],
+)
+async def health(service: Service) -> JSONResponse:
+    """Cheap liveness check that never touches the model, with recent /register latency percentiles.
+
+    503 once warm-up has failed, a state the process does not leave by itself, so that a liveness
+    probe restarts it rather than leaving it alive and never ready.
+    """
+    answer = HealthResponse(
+        status="failed" if service.warmup_error else "ok",
+        detail=service.warmup_error,
         ready=service.ready.is_set(),
         uptime_s=time.monotonic() - service.started_at,
         queue_depth=service.batcher.queue_depth if service.batcher is not None else 0,
         in_flight=service.in_flight,
         latency=LatencySummary(**service.latency.summary()),
     )
+    return JSONResponse(answer.model_dump(), status_code=503 if service.warmup_error else 200)
 
 
 @router.get(

@@ -309,7 +309,10 @@ class HealthResponse(BaseModel):
         }
     )
 
-    status: Literal["ok"] = "ok"
+    status: Literal["ok", "failed"] = Field(
+        "ok", description="`failed` (with HTTP 503) once the model's warm-up has failed: restart the process."
+    )
+    detail: str | None = Field(None, description="What failed, when status is `failed`.")
     ready: bool
     uptime_s: float
     queue_depth: int = Field(description="Pairs waiting for the model.")

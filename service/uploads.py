@@ -1,6 +1,9 @@
 """The /register body in any accepted encoding: JSON, multipart file parts, or a raw NPY/NPZ body."""
 
 import asyncio
+import contextlib
+import errno
+from collections.abc import Iterator
 from typing import TypeVar
 
 import numpy as np
@@ -74,31 +77,46 @@ async def read_register_body(
 async def _read_multipart(
     request: Request, query_options: str | None, settings: Settings
 ) -> tuple[np.ndarray, np.ndarray, RegistrationOptions]:
-    async with request.form(max_files=3, max_fields=3) as form:  # source, target and options (field or file)
-        unexpected = sorted(set(form.keys()) - {"source", "target", "options"})
-        if unexpected:
-            raise InvalidInput(
-                unexpected[0],
-                "unexpected form part; send file parts `source` and `target` and an optional `options` field (JSON)",
-            )
-        clouds = []
-        for name in ("source", "target"):
-            part = form.get(name)
-            if not isinstance(part, UploadFile):
+    with _spooling_space():
+        async with request.form(max_files=3, max_fields=3) as form:  # source, target and options (field or file)
+            unexpected = sorted(set(form.keys()) - {"source", "target", "options"})
+            if unexpected:
                 raise InvalidInput(
-                    name, f"missing file part: upload the cloud as a PLY, PCD or NPY file named `{name}`"
+                    unexpected[0],
+                    "unexpected form part; send file parts `source` and `target` and optionally `options` (JSON)",
                 )
-            data = await part.read()
-            try:
-                clouds.append(await asyncio.to_thread(read_cloud, data, name, settings.max_cloud_points))
-            except UnsupportedFormat as error:
-                raise UnsupportedMediaType(str(error)) from None
-        options_field = form.get("options")
-        if isinstance(options_field, UploadFile):
-            options_field = (await options_field.read()).decode("utf-8", errors="replace")
+            clouds = []
+            for name in ("source", "target"):
+                part = form.get(name)
+                if not isinstance(part, UploadFile):
+                    raise InvalidInput(
+                        name, f"missing file part: upload the cloud as a PLY, PCD or NPY file named `{name}`"
+                    )
+                data = await part.read()
+                try:
+                    clouds.append(await asyncio.to_thread(read_cloud, data, name, settings.max_cloud_points))
+                except UnsupportedFormat as error:
+                    raise UnsupportedMediaType(str(error)) from None
+            options_field = form.get("options")
+            if isinstance(options_field, UploadFile):
+                options_field = (await options_field.read()).decode("utf-8", errors="replace")
     if options_field is not None and query_options is not None:
         raise InvalidInput("options", "given both as a form field and in the query string; send it once")
     return clouds[0], clouds[1], _options(options_field if options_field is not None else query_options)
+
+
+@contextlib.contextmanager
+def _spooling_space() -> Iterator[None]:
+    """Multipart files over 1 MB are spooled to /tmp: a full /tmp is the server's state, not the
+    client's fault, so it answers 503 (retry) rather than 500."""
+    try:
+        yield
+    except OSError as error:
+        if error.errno != errno.ENOSPC:
+            raise
+        raise HTTPException(
+            503, "body: no room on the server to buffer this upload right now; retry shortly", {"Retry-After": "1"}
+        ) from None
 
 
 def _options(text: str | None) -> RegistrationOptions:

@@ -267,6 +267,26 @@ async def test_multipart_errors(serve, tiny_model):
     assert nan_file.status_code == 422 and "NaN" in nan_file.json()["detail"]
 
 
+async def test_no_room_to_spool_an_upload_is_503_not_500(serve, tiny_model, monkeypatch):
+    """Multipart files are spooled to /tmp; when it is full the client is told to retry."""
+    import errno
+    import tempfile
+
+    import starlette.formparsers
+
+    class FullDisk(tempfile.SpooledTemporaryFile):
+        def write(self, data):
+            raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(starlette.formparsers, "SpooledTemporaryFile", FullDisk)
+    async with serve(settings_for(tiny_model)) as (app, client):
+        response = await client.post(
+            "/register", files={"source": ("s.ply", ply_file(SOURCE)), "target": ("t.ply", ply_file(TARGET))}
+        )
+    assert response.status_code == 503 and response.headers["retry-after"] == "1"
+    assert "no room on the server to buffer this upload" in response.json()["detail"]
+
+
 async def test_options_may_be_a_file_part(serve, tiny_model):
     clouds = {"source": ("s.ply", ply_file(SOURCE)), "target": ("t.ply", ply_file(TARGET))}
     async with serve(settings_for(tiny_model)) as (app, client):
@@ -386,10 +406,32 @@ async def test_ready_flips_after_warm_up(serve, tiny_model, gated_engine):
         early_response = await early
     assert not_ready.status_code == 503 and not_ready.json() == {"ready": False, "detail": "warming up the model"}
     assert v2_not_ready.status_code == 503 and v2_not_ready.json() == {"ready": False}
-    assert live.status_code == 200 and live.json()["ready"] is False
+    assert live.status_code == 200 and live.json()["ready"] is False and live.json()["status"] == "ok"
     assert ready.status_code == 200 and ready.json()["ready"] is True and v2_ready.status_code == 200
     assert early_response.status_code == 200
     assert engine.calls[:3] == [1, 2, 3]  # warm-up: one call at each batch size, before any request
+
+
+async def test_a_failed_warm_up_fails_liveness_so_the_process_is_restarted(serve, tiny_model):
+    from service.engine import OnnxEngine
+
+    class FailingWarmUp:
+        def __init__(self, engine):
+            self.info = engine.info
+
+        def run(self, source, target):
+            raise RuntimeError("out of memory")
+
+    engine = FailingWarmUp(OnnxEngine(tiny_model))
+    async with serve(settings_for(tiny_model), engine=engine, wait_ready=False) as (app, client):
+        for _ in range(200):  # the warm-up task fails at once; a hang guard, not a timing assertion
+            if app.state.service.warmup_error:
+                break
+            await asyncio.sleep(0.01)
+        live, ready = await client.get("/health"), await client.get("/ready")
+    assert live.status_code == 503 and live.json()["status"] == "failed"
+    assert "warm-up failed: out of memory" in live.json()["detail"]
+    assert ready.status_code == 503 and ready.json()["detail"] == live.json()["detail"]
 
 
 async def test_metrics_parse_with_the_prometheus_parser(serve, tiny_model):
