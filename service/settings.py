@@ -27,8 +27,8 @@ class Settings(BaseSettings):
     )
     # A call that starts alone gets every thread (a lone request's latency); calls beside it share
     # them out. On a 2-CPU machine two 1-thread calls side by side served ~1.4x the pairs/s of one
-    # 2-thread call at a time, and batches of 2-4 cost more per pair than single pairs, on one
-    # thread or two (docs/benchmarks.md): hence these two defaults.
+    # 2-thread call at a time, and with two calls batches of up to 4 served 16 clients fewer pairs/s
+    # than single pairs (bench/bench_service.py, docs/benchmarks.md): hence these two defaults.
     model_calls: int = Field(
         2,
         ge=1,

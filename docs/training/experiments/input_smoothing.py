@@ -5,7 +5,11 @@ before the network sees them. The mean is rigid-equivariant, so the pose between
 clouds is the true one, and the independent jitter of the two clouds shrinks by sqrt(k).
 Prints MAE(R) of the network alone on the first --pairs evaluation pairs of each variant:
 
-    python docs/training/experiments/input_smoothing.py --model service/models/ifnet.onnx --k 1 4 8 16 32
+    python -m export --weights model/weights/ifnet-fast-clean.pt --output /tmp/ifnet-clean.onnx
+    python docs/training/experiments/input_smoothing.py --model /tmp/ifnet-clean.onnx --k 1 4 8 16 32
+
+(The table in README.md is of the clean-trained network, as above; the default --model is the
+shipped one.)
 """
 
 import argparse

@@ -14,11 +14,15 @@ model, ICP with `refine`), once per model:
         --models service/models/ifnet.onnx /tmp/ifnet-clean.onnx --motions 5
 
 Prints, per model, scan and kind of pair, the median and worst rotation error (degrees) of the
-network alone and after refinement, and how many pairs are more than 5 degrees off.
+network alone and after refinement, and how many pairs are more than 5 degrees off; writes every
+pair's errors to `--out` (default: real_scan_pairs.json beside this script).
 """
 
 import argparse
 import asyncio
+import json
+import sys
+from datetime import UTC, datetime
 from pathlib import Path
 
 import numpy as np
@@ -77,7 +81,13 @@ def main() -> None:
     parser.add_argument("--overlap", type=float, default=0.75)
     parser.add_argument("--max-points", type=int, default=40_000, help="larger scans are subsampled first")
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--out", type=Path, default=Path(__file__).with_suffix(".json"))
     args = parser.parse_args()
+    record: dict = {
+        "command": " ".join(["python docs/training/experiments/real_scan_pairs.py", *sys.argv[1:]]),
+        "when": datetime.now(UTC).strftime("%Y-%m-%d %H:%M UTC"),
+        "models": {},
+    }
 
     with np.load(REAL_SCANS, allow_pickle=False) as archive:
         scans = {name: remove_duplicates(archive[name].astype(np.float64)) for name in archive.files}
@@ -100,9 +110,19 @@ def main() -> None:
         print(f"\n{model}: rotation error, median / worst of {args.motions} motions (deg), (pairs above 5 deg)")
         print(f"{'scan':24s} {'pair':7s} {'points':>7s} {'network':>19s} {'refined':>19s}")
         summary: dict[str, list[np.ndarray]] = {"shared": [], "rescan": []}
+        rows = record["models"][str(model)] = []
         for (name, kind), scan_pairs in pairs.items():
             alone, refined = rotation_errors(engine, scan_pairs)
             summary[kind].append(np.stack([alone, refined]))
+            rows.append(
+                {
+                    "scan": name,
+                    "pair": kind,
+                    "source_points": len(scan_pairs[0][0]),
+                    "network_deg": alone.tolist(),
+                    "refined_deg": refined.tolist(),
+                }
+            )
             cells = [f"{np.median(e):7.3f} / {e.max():6.2f} ({(e > 5).sum()})" for e in (alone, refined)]
             print(f"{name:24s} {kind:7s} {len(scan_pairs[0][0]):7d} {cells[0]:>19s} {cells[1]:>19s}")
         for kind, stacks in summary.items():
@@ -112,6 +132,8 @@ def main() -> None:
                 f"{(alone > 5).sum()} / {(refined > 5).sum()} of {len(alone)} pairs above 5 deg "
                 "(network / refined)"
             )
+    args.out.write_text(json.dumps(record, indent=1))
+    print(f"wrote {args.out}")
 
 
 if __name__ == "__main__":
