@@ -26,13 +26,18 @@ from export.onnx_export import (
     metadata_for,
     ort_session,
 )
+from model.training.cli import UserError, positive_int, reports_user_errors
 from model.training.data import evaluation_pairs
+
+PROG = "python -m export"
 
 
 def parse_args(argv: list[str] | None) -> argparse.Namespace:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = argparse.ArgumentParser(
+        prog=PROG, description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     parser.add_argument("--weights", type=Path, default=DEFAULT_WEIGHTS, help="checkpoint or shipped weights (.pt)")
-    parser.add_argument("--output", type=Path, default=DEFAULT_OUTPUT)
+    parser.add_argument("--output", type=Path, default=DEFAULT_OUTPUT, help="where the checked .onnx goes")
     parser.add_argument(
         "--iterations",
         type=int,
@@ -47,7 +52,9 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
         help="passes over the iterations, each fed back the last pass's target features (default: as trained)",
     )
     parser.add_argument("--preset-name", default=None, help="recorded in the metadata (default: from the weights file)")
-    parser.add_argument("--check-pairs", type=int, default=8, help="pairs compared between torch and ONNX Runtime")
+    parser.add_argument(
+        "--check-pairs", type=positive_int, default=8, help="pairs compared between torch and ONNX Runtime"
+    )
     parser.add_argument("--rotation-tol", type=float, default=1e-3, help="max |R_onnx - R_torch| per entry")
     parser.add_argument(
         "--translation-tol", type=float, default=1e-3, help="max |t_onnx - t_torch| per entry (unit-sphere units)"
@@ -60,8 +67,13 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     return args
 
 
+@reports_user_errors(PROG)
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
+    try:  # an unusable --output fails now, not after the export
+        args.output.parent.mkdir(parents=True, exist_ok=True)
+    except (FileExistsError, NotADirectoryError):
+        raise UserError(f"--output {args.output}: a file stands where its folder would be") from None
     model, weights_sha256 = load_checkpoint(args.weights, args.iterations, args.time_steps)
     preset_name = args.preset_name or torch.load(args.weights, map_location="cpu", weights_only=True).get(
         "preset", "custom"
@@ -94,7 +106,6 @@ def main(argv: list[str] | None = None) -> int:
                 file=sys.stderr,
             )
             return 1
-        args.output.parent.mkdir(parents=True, exist_ok=True)
         shutil.move(candidate, args.output)
     print(f"wrote {args.output}")
     return 0

@@ -22,6 +22,7 @@ from torch.nn.utils.fusion import fuse_linear_bn_eval
 
 from model.geometry import rotation_angle_deg
 from model.ifnet import ChannelBatchNorm, IFNet, IFNetConfig, PointMLP
+from model.training.cli import UserError, load_torch_file
 from service.engine import file_sha256
 
 OPSET = 17
@@ -83,7 +84,9 @@ def load_checkpoint(path: Path, iterations: int | None = None, time_steps: int |
     runs the same shared weights, so the weights run at any counts, and the cost grows with
     their product.
     """
-    state = torch.load(path, map_location="cpu", weights_only=True)
+    state = load_torch_file(path, "weights file")
+    if "model" not in state or "config" not in state:
+        raise UserError(f"weights file {path}: not IFNet weights or a training checkpoint (no model state and config)")
     config = IFNetConfig.from_dict(state["config"])
     unroll = {"n_iters": iterations, "time_steps": time_steps}
     config = replace(config, **{k: v for k, v in unroll.items() if v is not None})  # rejects counts below 1

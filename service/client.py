@@ -134,12 +134,18 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--json", action="store_true", help="print the service's whole JSON answer")
     parser.add_argument("--timeout", type=float, default=120.0, help="seconds to wait for the answer")
     args = parser.parse_args(argv)
+    if not args.timeout > 0:
+        parser.error(f"--timeout must be more than 0 seconds, got {args.timeout:g}")
 
     refine: bool | dict | None = None
     if args.refine or args.refine_distance is not None:
         refine = {"max_distance": args.refine_distance} if args.refine_distance is not None else True
     try:
         init = _load_matrix(args.init) if args.init else None
+    except (OSError, ValueError) as error:
+        print(f"ifnet-register: --init {args.init}: not a 4x4 matrix in .npy or text ({error})", file=sys.stderr)
+        return 1
+    try:
         with RegistrationClient(args.url, args.api_key, args.timeout) as client:
             result = client.register_files(
                 args.source,
@@ -153,19 +159,36 @@ def main(argv: list[str] | None = None) -> int:
     except RegistrationError as error:
         print(f"ifnet-register: the service refused: {error}", file=sys.stderr)
         return 1
+    except httpx.TimeoutException:
+        print(f"ifnet-register: no answer from {args.url} within {args.timeout:g} s; raise --timeout", file=sys.stderr)
+        return 1
+    except httpx.TransportError as error:
+        print(
+            f"ifnet-register: cannot reach the service at {args.url} ({error}); is it running? "
+            "Point --url (or IFNET_URL) at it",
+            file=sys.stderr,
+        )
+        return 1
     except (OSError, ValueError, httpx.HTTPError) as error:
         print(f"ifnet-register: {error}", file=sys.stderr)
         return 1
 
     print(json.dumps(result, indent=2) if args.json else format_report(result))
     if args.output:
-        from service.formats import read_cloud_file, write_ply
-
-        transform = np.asarray(result["transform"])
-        source = read_cloud_file(args.source)
-        write_ply(args.output, source @ transform[:3, :3].T + transform[:3, 3])
+        try:
+            write_moved_source(args.source, np.asarray(result["transform"]), args.output)
+        except OSError as error:
+            print(f"ifnet-register: --output {args.output}: {error}", file=sys.stderr)
+            return 1
         print(f"moved source written to {args.output}", file=sys.stderr)
     return 0
+
+
+def write_moved_source(source_path: str, transform: np.ndarray, output: str) -> None:
+    from service.formats import read_cloud_file, write_ply
+
+    source = read_cloud_file(source_path)
+    write_ply(output, source @ transform[:3, :3].T + transform[:3, 3])
 
 
 if __name__ == "__main__":

@@ -68,6 +68,19 @@ def test_server_and_command_line_client(tmp_path, tiny_model):
     np.testing.assert_allclose(from_arrays["transform"][3], [0, 0, 0, 1])
 
 
+def test_the_command_line_client_names_what_went_wrong(tmp_path):
+    np.save(tmp_path / "cloud.npy", np.random.default_rng(0).normal(size=(50, 3)))
+    (tmp_path / "init.txt").write_text("not a matrix")
+    cloud = str(tmp_path / "cloud.npy")
+    down = f"http://127.0.0.1:{free_port()}"  # nothing listens there
+    unreachable = run_client(cloud, cloud, "--url", down)
+    bad_init = run_client(cloud, cloud, "--url", down, "--init", str(tmp_path / "init.txt"))
+    assert unreachable.returncode == 1
+    assert f"cannot reach the service at {down}" in unreachable.stderr and "--url" in unreachable.stderr
+    assert bad_init.returncode == 1 and f"--init {tmp_path / 'init.txt'}: not a 4x4 matrix" in bad_init.stderr
+    assert "Traceback" not in unreachable.stderr + bad_init.stderr
+
+
 def test_sigterm_finishes_in_flight_requests_then_exits(tmp_path, tiny_model):
     # Clouds big enough that parsing and sampling keep each request busy for a while.
     rng = np.random.default_rng(1)

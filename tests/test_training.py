@@ -182,9 +182,10 @@ def train_briefly(tmp_path, shapes, *options: str) -> None:
 def test_training_with_a_teacher_logs_its_consistency_loss(tmp_path, shapes):
     save_random_network(tmp_path / "teacher.pt", seed=5)
     train_briefly(tmp_path, shapes, "--max-steps", "2", "--teacher", str(tmp_path / "teacher.pt"))
-    from model.training.ship import ship
+    from model.training.ship import read_checkpoint, ship
 
-    record = ship(tmp_path / "run" / "checkpoint.pt", tmp_path / "shipped.pt")
+    checkpoint = tmp_path / "run" / "checkpoint.pt"
+    record = ship(read_checkpoint(checkpoint), checkpoint, tmp_path / "shipped.pt")
     assert "teacher consistency" in record["training"]["objective"], record["training"]
     rows = list(csv.DictReader((tmp_path / "run" / "log.csv").open()))
     # A random student and a random teacher disagree by a good fraction of the unit-sphere clouds.
@@ -351,3 +352,33 @@ def test_an_override_below_one_is_a_usage_error_before_any_work(tmp_path):
     with pytest.raises(SystemExit, match="--override: IFNetConfig.n_iters must be at least 1, got 0"):
         train_main(["--preset", "fast", "--override", "n_iters=0", "--out", str(tmp_path / "run")])
     assert not (tmp_path / "run").exists()
+
+
+@pytest.mark.parametrize(
+    ("command", "argv", "message"),
+    [
+        ("train", ["--batch-size", "0"], "argument --batch-size: must be more than 0, got 0"),
+        ("train", ["--device", "gpu"], "--device gpu: not a torch device; use cpu or cuda"),
+        ("evaluate", ["--model", "/nonexistent/model.onnx"], "--model /nonexistent/model.onnx: no such file"),
+        ("evaluate", ["--threads", "-1"], "argument --threads: must be more than 0"),
+        ("export", ["--weights", "{junk}"], "not a torch checkpoint or weights file torch can read"),
+        ("export", ["--check-pairs", "0"], "argument --check-pairs: must be more than 0"),
+        ("ship", [], "give --checkpoint"),
+        ("ship", ["--checkpoint", str(DEFAULT_WEIGHTS)], "not a training checkpoint"),
+    ],
+)
+def test_command_line_mistakes_end_in_one_line_and_status_2(tmp_path, capsys, command, argv, message):
+    """Each tool names the option and the problem instead of showing a traceback."""
+    import importlib
+
+    module = {"export": "export.__main__"}.get(command, f"model.training.{command}")
+    junk = tmp_path / "junk.pt"
+    junk.write_bytes(os.urandom(256))
+    argv = [arg.format(junk=junk) for arg in argv]
+    if command == "train":
+        argv += ["--out", str(tmp_path / "run")]  # never the default runs/ folder
+    with pytest.raises(SystemExit) as stopped:
+        importlib.import_module(module).main(argv)
+    assert stopped.value.code == 2
+    error = capsys.readouterr().err.strip().splitlines()
+    assert message in error[-1] and "Traceback" not in "\n".join(error)

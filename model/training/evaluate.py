@@ -24,6 +24,7 @@ os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 import numpy as np  # noqa: E402
 
 from model.geometry import from_matrix, icp_refine, registration_errors, summarise_errors
+from model.training.cli import UserError, non_negative_float, non_negative_int, positive_int, reports_user_errors
 from model.training.data import DEFAULT_DATA_DIR, Protocol, load_split, make_pair
 
 # Correspondence distance of every ICP here, in unit-sphere units: large enough to pull in a
@@ -45,10 +46,15 @@ REFINED = "IFNet + ICP"  # the network's estimate refined by point-to-point ICP,
 
 def network_runner(model_path: Path, threads: int) -> Registration:
     """(source, target) -> (R, t) with the network, from an ONNX file or a torch checkpoint."""
+    if not model_path.is_file():
+        raise UserError(f"--model {model_path}: no such file (an .onnx export or .pt weights)")
     if model_path.suffix == ".onnx":
         from export.onnx_export import ort_session
 
-        session = ort_session(model_path, threads)
+        try:
+            session = ort_session(model_path, threads)
+        except Exception as error:  # onnxruntime's own exception types
+            raise UserError(f"--model {model_path}: ONNX Runtime cannot load it ({str(error)[:120]})") from None
 
         def run_onnx(source: np.ndarray, target: np.ndarray):
             rotation, translation = session.run(None, {"source": source[None], "target": target[None]})
@@ -209,6 +215,7 @@ def markdown_report(results: dict[str, dict[str, dict]], header: str) -> str:
     return "\n".join(lines)
 
 
+PROG = "python -m model.training.evaluate"
 PUBLISHED_REPORT = Path("docs/evaluation")
 QUICK_REPORT = Path("runs/evaluation")
 
@@ -234,10 +241,17 @@ def shape_indices(total: int, limit: int, spread: bool) -> np.ndarray:
 def parse_args(argv: list[str] | None) -> argparse.Namespace:
     from export.onnx_export import DEFAULT_OUTPUT
 
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--model", type=Path, default=DEFAULT_OUTPUT, help=".onnx (ONNX Runtime) or .pt (torch)")
+    parser = argparse.ArgumentParser(
+        prog=PROG, description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    parser.add_argument(
+        "--model",
+        type=Path,
+        default=DEFAULT_OUTPUT,
+        help=".onnx (ONNX Runtime) or .pt (torch); default: the served one",
+    )
     parser.add_argument("--sets", nargs="+", default=list(SETS), choices=list(SETS))
-    parser.add_argument("--limit", type=int, default=0, help="pairs per set (0: every shape)")
+    parser.add_argument("--limit", type=non_negative_int, default=0, help="pairs per set (0: every shape)")
     parser.add_argument(
         "--spread",
         action="store_true",
@@ -247,7 +261,7 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     parser.add_argument("--seed", type=int, default=1234, help="pair i of a set is seeded by (seed, i)")
     parser.add_argument(
         "--jitter-sigma",
-        type=float,
+        type=non_negative_float,
         default=Protocol.jitter_sigma,
         help=f"of the jitter set (the protocol's {Protocol.jitter_sigma:g})",
     )
@@ -257,9 +271,9 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
         help="jitter each shape once before the motion and crops, so both clouds share their noisy points "
         "(a diagnostic: isolates the noise from the loss of exact shared points)",
     )
-    parser.add_argument("--threads", type=int, default=2)
-    parser.add_argument("--no-baselines", action="store_true")
-    parser.add_argument("--data-dir", type=Path, default=DEFAULT_DATA_DIR)
+    parser.add_argument("--threads", type=positive_int, default=2, help="of the network and of Open3D (default: 2)")
+    parser.add_argument("--no-baselines", action="store_true", help="skip the Open3D baselines")
+    parser.add_argument("--data-dir", type=Path, default=DEFAULT_DATA_DIR, help="folder with the ModelNet .npz files")
     parser.add_argument(
         "--out",
         type=Path,
@@ -267,8 +281,6 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
         "other, so that quick checks never overwrite the published report)",
     )
     args = parser.parse_args(argv)
-    if args.limit < 0:
-        parser.error(f"--limit must be 0 (every shape) or more, got {args.limit}")
     if args.out is None:
         defaults = vars(parser.parse_args([]))
         full_run = all(same_option(value, defaults[name]) for name, value in vars(args).items())
@@ -283,6 +295,7 @@ def same_option(value, default) -> bool:
     return value == default
 
 
+@reports_user_errors(PROG)
 def main(argv: list[str] | None = None) -> dict:
     args = parse_args(argv)
     network = network_runner(args.model, args.threads)

@@ -5,7 +5,8 @@
 
 Writes model/weights/ifnet-<preset>.pt (or the --weights path: model state and config only, no
 optimiser) and the record beside it, ifnet-<preset>.json (preset, training data and noise, steps and
-epochs, date, checksum, evaluation).
+epochs, date, checksum, evaluation). With --evaluation alone it updates the record of --weights
+(default: the shipped model/weights/ifnet-fast.pt).
 """
 
 import argparse
@@ -17,7 +18,10 @@ from pathlib import Path
 import torch
 
 from export.onnx_export import DEFAULT_WEIGHTS
+from model.training.cli import UserError, load_torch_file, reports_user_errors
 from service.engine import file_sha256
+
+PROG = "python -m model.training.ship"
 
 TRAINING_DATA = "ModelNet10 train split (../shared/data/modelnet10_train.npz), last 64 shapes held out for validation"
 
@@ -42,8 +46,17 @@ def pair_noise(args: dict) -> str:
     return ", ".join(noise)
 
 
-def ship(checkpoint: Path, weights: Path) -> dict:
-    state = torch.load(checkpoint, map_location="cpu", weights_only=True)
+def read_checkpoint(checkpoint: Path) -> dict:
+    state = load_torch_file(checkpoint, "--checkpoint")
+    if not {"model", "config", "args", "step"} <= set(state):
+        raise UserError(
+            f"--checkpoint {checkpoint}: not a training checkpoint (shipped weights carry no training record); "
+            "pass the checkpoint.pt of a training run"
+        )
+    return state
+
+
+def ship(state: dict, checkpoint: Path, weights: Path) -> dict:
     preset_name = state.get("preset") or state["args"]["preset"]
     weights.parent.mkdir(parents=True, exist_ok=True)
     torch.save({"model": state["model"], "config": state["config"], "preset": preset_name}, weights)
@@ -76,18 +89,41 @@ def ship(checkpoint: Path, weights: Path) -> dict:
     }
 
 
+def evaluation_results(path: Path) -> dict:
+    try:
+        return json.loads(path.read_text())["results"]
+    except (UnicodeDecodeError, json.JSONDecodeError, KeyError, TypeError):
+        raise UserError(f"--evaluation {path}: not an evaluation.json of python -m model.training.evaluate") from None
+
+
+@reports_user_errors(PROG)
 def main(argv: list[str] | None = None) -> None:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = argparse.ArgumentParser(
+        prog=PROG, description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     parser.add_argument("--checkpoint", type=Path, help="training checkpoint to ship")
-    parser.add_argument("--weights", type=Path, default=DEFAULT_WEIGHTS)
+    parser.add_argument(
+        "--weights",
+        type=Path,
+        help="where the weights go (default: model/weights/ifnet-<the checkpoint's preset>.pt; with only "
+        "--evaluation, the shipped model/weights/ifnet-fast.pt)",
+    )
     parser.add_argument("--evaluation", type=Path, help="evaluation.json whose summary goes into the record")
     args = parser.parse_args(argv)
+    if not (args.checkpoint or args.evaluation):
+        parser.error("give --checkpoint (ship a training run) and/or --evaluation (add its summary to the record)")
+    state = read_checkpoint(args.checkpoint) if args.checkpoint else None
+    if args.weights is None:
+        preset_name = state and (state.get("preset") or state["args"]["preset"])
+        args.weights = DEFAULT_WEIGHTS.with_name(f"ifnet-{preset_name}.pt") if preset_name else DEFAULT_WEIGHTS
     record_path = args.weights.with_suffix(".json")
-    record = ship(args.checkpoint, args.weights) if args.checkpoint else json.loads(record_path.read_text())
+    if state is None and not record_path.is_file():
+        raise UserError(f"{record_path} not found: ship a checkpoint first (--checkpoint)")
+    record = ship(state, args.checkpoint, args.weights) if state else json.loads(record_path.read_text())
     if record["sha256"] != file_sha256(args.weights):
         raise SystemExit(f"{record_path} does not describe {args.weights} (checksum differs); ship again")
     if args.evaluation:
-        results = json.loads(args.evaluation.read_text())["results"]
+        results = evaluation_results(args.evaluation)
         record["evaluation"] = {
             set_name: {
                 method: {

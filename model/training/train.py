@@ -22,8 +22,19 @@ from tqdm import tqdm
 from export.onnx_export import load_checkpoint
 from model.geometry import rotation_angle_deg
 from model.ifnet import PRESETS, IFNet, IFNetConfig, preset
+from model.training.cli import (
+    UserError,
+    load_torch_file,
+    non_negative_float,
+    non_negative_int,
+    positive_float,
+    positive_int,
+    reports_user_errors,
+)
 from model.training.data import DEFAULT_DATA_DIR, NOISE_KINDS, Protocol, RegistrationPairs, load_split
 from model.training.losses import ifnet_losses, teacher_consistency_loss
+
+PROG = "python -m model.training.train"
 
 LOG_FIELDS = [
     "step",
@@ -44,8 +55,10 @@ VALIDATION_COLUMNS = {"val_rotation_deg": "clean", "val_jitter_rotation_deg": "j
 
 
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--preset", default="fast", choices=sorted(PRESETS))
+    parser = argparse.ArgumentParser(
+        prog=PROG, description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    parser.add_argument("--preset", default="fast", choices=sorted(PRESETS), help="model size (default: fast)")
     parser.add_argument(
         "--override",
         nargs="+",
@@ -53,19 +66,31 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
         metavar="FIELD=INT",
         help="change integer fields of the preset's config, e.g. --override edgeconv_k=16 (for experiments)",
     )
-    parser.add_argument("--epochs", type=float, default=2.0, help="may be fractional")
-    parser.add_argument("--batch-size", type=int, default=4)
-    parser.add_argument("--lr", type=float, default=1e-3, help="Adam learning rate (the paper's 1e-3)")
-    parser.add_argument("--schedule", choices=["cosine", "constant"], default="cosine")
-    parser.add_argument("--seed", type=int, default=3407)
-    parser.add_argument("--data-dir", type=Path, default=DEFAULT_DATA_DIR)
-    parser.add_argument("--out", type=Path, default=Path("runs/default"))
-    parser.add_argument("--checkpoint-every", type=int, default=100, help="steps")
-    parser.add_argument("--val-shapes", type=int, default=64, help="training shapes held out for validation")
-    parser.add_argument("--max-shapes", type=int, default=0, help="train on the first N shapes only (0: all)")
-    parser.add_argument("--max-steps", type=int, default=0, help="stop after this many steps (0: no limit)")
-    parser.add_argument("--threads", type=int, default=0, help="torch threads (0: torch's default)")
-    parser.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
+    parser.add_argument("--epochs", type=positive_float, default=2.0, help="may be fractional (default: 2)")
+    parser.add_argument("--batch-size", type=positive_int, default=4, help="pairs per step (default: 4)")
+    parser.add_argument("--lr", type=positive_float, default=1e-3, help="Adam learning rate (the paper's 1e-3)")
+    parser.add_argument(
+        "--schedule", choices=["cosine", "constant"], default="cosine", help="learning rate over the run"
+    )
+    parser.add_argument("--seed", type=int, default=3407, help="of the weights and the training pairs")
+    parser.add_argument("--data-dir", type=Path, default=DEFAULT_DATA_DIR, help="folder holding modelnet10_train.npz")
+    parser.add_argument(
+        "--out", type=Path, default=Path("runs/default"), help="run folder: checkpoint, log, plot (resumed if present)"
+    )
+    parser.add_argument("--checkpoint-every", type=positive_int, default=100, help="steps between checkpoints")
+    parser.add_argument("--val-shapes", type=positive_int, default=64, help="training shapes held out for validation")
+    parser.add_argument(
+        "--max-shapes", type=non_negative_int, default=0, help="train on the first N shapes only (0: all)"
+    )
+    parser.add_argument(
+        "--max-steps", type=non_negative_int, default=0, help="stop after this many steps (0: no limit)"
+    )
+    parser.add_argument("--threads", type=non_negative_int, default=0, help="torch threads (0: torch's default)")
+    parser.add_argument(
+        "--device",
+        default="cuda" if torch.cuda.is_available() else "cpu",
+        help="torch device (default: cuda when a GPU is visible, else cpu)",
+    )
     parser.add_argument(
         "--noise",
         nargs="+",
@@ -75,7 +100,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     )
     parser.add_argument(
         "--jitter-sigma",
-        type=float,
+        type=non_negative_float,
         default=Protocol.jitter_sigma,
         help="sigma of the training pairs' jitter (validation keeps the evaluation's 0.01); "
         "raising it over successive fine-tunes makes a noise curriculum",
@@ -100,7 +125,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     )
     parser.add_argument(
         "--teacher-weight",
-        type=float,
+        type=non_negative_float,
         default=1000.0,
         help="weight of the teacher consistency loss (its gradient is ~1/100 of the neighbourhood loss's)",
     )
@@ -140,6 +165,27 @@ def training_pairs(shapes: np.ndarray, args: argparse.Namespace) -> Registration
 def load_teacher(path: Path, device: str) -> IFNet:
     teacher, _ = load_checkpoint(path)
     return teacher.to(device).requires_grad_(False)
+
+
+def load_weights_into(model: IFNet, path: Path, option: str) -> None:
+    state = load_torch_file(path, option)
+    if "model" not in state or "config" not in state:
+        raise UserError(f"{option} {path}: not IFNet weights (no model state and config in it)")
+    try:
+        model.load_state_dict(state["model"])
+    except RuntimeError:  # parameter shapes differ
+        raise UserError(
+            f"{option} {path}: weights of another model size; pass their --preset (and --override)"
+        ) from None
+
+
+def check_device(device: str) -> None:
+    try:
+        kind = torch.device(device).type
+    except RuntimeError:
+        raise UserError(f"--device {device}: not a torch device; use cpu or cuda") from None
+    if kind == "cuda" and not torch.cuda.is_available():
+        raise UserError(f"--device {device}: torch sees no CUDA GPU here; use --device cpu")
 
 
 @torch.no_grad()
@@ -238,6 +284,7 @@ def train(args: argparse.Namespace) -> Path:
         config: IFNetConfig = preset(args.preset, **parse_overrides(args.override))
     except ValueError as error:
         raise SystemExit(f"--override: {error}") from None
+    check_device(args.device)
     if args.threads:
         torch.set_num_threads(args.threads)
     torch.manual_seed(args.seed)
@@ -245,10 +292,17 @@ def train(args: argparse.Namespace) -> Path:
     checkpoint_path, log_path = args.out / "checkpoint.pt", args.out / "log.csv"
 
     shapes = load_split("train", args.data_dir)
+    if args.val_shapes >= len(shapes):
+        raise UserError(f"--val-shapes {args.val_shapes} leaves nothing to train on: the split has {len(shapes)}")
     val_shapes, train_shapes = shapes[-args.val_shapes :], shapes[: -args.val_shapes]
     if args.max_shapes:
         train_shapes = train_shapes[: args.max_shapes]
-    train_pairs = training_pairs(train_shapes, args)
+    if args.batch_size > len(train_shapes):
+        raise UserError(f"--batch-size {args.batch_size} is more than the {len(train_shapes)} training shapes")
+    try:
+        train_pairs = training_pairs(train_shapes, args)
+    except ValueError as error:  # kinds of noise that cannot be mixed
+        raise UserError(f"--noise {' '.join(args.noise)}: {error}") from None
     validation = {
         column: RegistrationPairs(val_shapes, Protocol(noise=noise), seed=args.seed + 1)
         for column, noise in VALIDATION_COLUMNS.items()
@@ -261,7 +315,7 @@ def train(args: argparse.Namespace) -> Path:
     optimizer = torch.optim.Adam(model.parameters(), lr=args.lr)
     step, seconds_before = 0, 0.0
     if checkpoint_path.exists():
-        state = torch.load(checkpoint_path, map_location=args.device)
+        state = load_torch_file(checkpoint_path, "checkpoint to resume", weights_only=False)
         if IFNetConfig.from_dict(state["config"]) != config:
             raise SystemExit(f"{checkpoint_path} holds a different preset; use another --out")
         model.load_state_dict(state["model"])
@@ -273,7 +327,7 @@ def train(args: argparse.Namespace) -> Path:
             print("options differ from the checkpoint's; training continues with the new ones: " + ", ".join(changed))
     else:
         if args.init_weights:
-            model.load_state_dict(torch.load(args.init_weights, map_location=args.device, weights_only=True)["model"])
+            load_weights_into(model, args.init_weights, "--init-weights")
         log_path.write_text(",".join(LOG_FIELDS) + "\n")
 
     steps_per_epoch = len(train_pairs) // args.batch_size
@@ -349,6 +403,7 @@ def train(args: argparse.Namespace) -> Path:
     return checkpoint_path
 
 
+@reports_user_errors(PROG)
 def main(argv: list[str] | None = None) -> None:
     train(parse_args(argv))
 
