@@ -177,6 +177,9 @@ def test_dynamic_batch_and_point_counts(tmp_path):
 def test_committed_onnx_matches_committed_weights():
     """Outputs, not bytes: the committed ONNX must compute what the committed weights compute."""
     session = ort_session(DEFAULT_OUTPUT)
+    declared = {value.name: value.shape for value in (*session.get_inputs(), *session.get_outputs())}
+    assert declared["source"] == ["batch", "n_source", 3] and declared["target"] == ["batch", "n_target", 3]
+    assert declared["rotation"] == ["batch", 3, 3] and declared["translation"][0] == "batch"  # README's contract
     metadata = session.get_modelmeta().custom_metadata_map
     assert metadata["weights_sha256"] == file_sha256(DEFAULT_WEIGHTS), "ONNX exported from other weights"
     record = json.loads(DEFAULT_WEIGHTS.with_suffix(".json").read_text())
