@@ -2,6 +2,7 @@
 
 import asyncio
 import logging
+import re
 from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
 
@@ -27,6 +28,7 @@ from service.settings import Settings
 from service.state import ClientDisconnected, ServiceState
 
 logger = logging.getLogger(__name__)
+FIELD_NAME = re.compile(r"[a-z][a-z_-]*(\[\d+\])?")  # body, source, content-type, target[1], ...
 
 DESCRIPTION = """
 Rigid registration of two point clouds with IFNet, run by ONNX Runtime.
@@ -167,7 +169,10 @@ def _install_error_handlers(app: FastAPI) -> None:
     # (404, 405, unparseable bodies), and those answers must have the same shape as every other error.
     @app.exception_handler(StarletteHTTPException)
     async def on_http_exception(request: Request, error: StarletteHTTPException) -> JSONResponse:
-        return _error(request, error.status_code, str(error.detail), headers=getattr(error, "headers", None))
+        detail = str(error.detail)
+        field, separator, problem = detail.partition(": ")  # the service's own "<field>: <problem>" details
+        errors = [{"field": field, "problem": problem}] if separator and FIELD_NAME.fullmatch(field) else []
+        return _error(request, error.status_code, detail, errors, headers=getattr(error, "headers", None))
 
 
 def _install_openapi(app: FastAPI) -> None:

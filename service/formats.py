@@ -200,9 +200,9 @@ def read_pair(data: bytes, max_points: int) -> tuple[np.ndarray, np.ndarray]:
         return _read_npz_pair(data, max_points)
     if kind in ("ply", "pcd"):
         raise UnsupportedFormat(
-            f"a raw {kind.upper()} body holds one cloud; send source and target as multipart/form-data file parts"
+            f"body: a raw {kind.upper()} body holds one cloud; send source and target as multipart/form-data file parts"
         )
-    raise UnsupportedFormat("unrecognised body; send NPY ([2, N, 3]) or NPZ (`source`, `target`) bytes")
+    raise UnsupportedFormat("body: unrecognised format; send NPY ([2, N, 3]) or NPZ (`source`, `target`) bytes")
 
 
 def _read_npz_pair(data: bytes, max_points: int) -> tuple[np.ndarray, np.ndarray]:

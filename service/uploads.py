@@ -71,7 +71,7 @@ async def read_register_body(
             raise UnsupportedMediaType(str(error)) from None
         return source, target, _options(query_options)
     shown = media or "none"
-    raise UnsupportedMediaType(f"content type {shown!r} is not accepted; send {ACCEPTED}")
+    raise UnsupportedMediaType(f"content-type: {shown!r} is not accepted; send {ACCEPTED}")
 
 
 async def _read_multipart(

@@ -226,7 +226,9 @@ async def test_wrong_content_type_gets_415(serve, tiny_model, content_type):
     async with serve(settings_for(tiny_model)) as (app, client):
         response = await client.post("/register", content=json.dumps(body()).encode(), headers=headers)
     assert response.status_code == 415
-    assert "application/json" in response.json()["detail"]
+    answer = response.json()
+    assert answer["detail"].startswith("content-type: ") and "application/json" in answer["detail"]
+    assert answer["errors"] == [{"field": "content-type", "problem": answer["detail"][len("content-type: ") :]}]
 
 
 async def test_multipart_uploads_match_the_json_answer(serve, tiny_model):
@@ -263,6 +265,7 @@ async def test_multipart_errors(serve, tiny_model):
         )
     assert missing.status_code == 422 and missing.json()["detail"].startswith("target: missing file part")
     assert unknown_format.status_code == 415 and "source: unrecognised file format" in unknown_format.json()["detail"]
+    assert unknown_format.json()["errors"][0]["field"] == "source"
     assert bad_options.status_code == 422 and bad_options.json()["detail"].startswith("seed:")
     assert nan_file.status_code == 422 and "NaN" in nan_file.json()["detail"]
 
