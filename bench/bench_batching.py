@@ -52,12 +52,28 @@ def free_port() -> int:
         return probe.getsockname()[1]
 
 
+def service_command(port: int) -> list[str]:
+    """`python -m service` on 127.0.0.1:port only, whatever IFNET_HOST says (benchmarks stay on loopback)."""
+    return [sys.executable, "-m", "service", "--host", "127.0.0.1", "--port", str(port)]
+
+
 def start_service(batch_size: int, port: int, model_calls: int | None = None) -> subprocess.Popen:
-    """`python -m service` on 127.0.0.1:port with this batch size (and model calls; default: the service's)."""
+    """The service on 127.0.0.1:port with this batch size (and model calls; default: the service's)."""
     env = {**os.environ, "PYTHONPATH": str(ROOT), "IFNET_MAX_BATCH_SIZE": str(batch_size), "IFNET_LOG_LEVEL": "warning"}
     if model_calls is not None:
         env["IFNET_MODEL_CALLS"] = str(model_calls)
-    return subprocess.Popen([sys.executable, "-m", "service", "--port", str(port)], env=env)
+    return subprocess.Popen(service_command(port), env=env)
+
+
+def stop_service(process: subprocess.Popen) -> None:
+    """SIGTERM, then SIGKILL if it has not exited within 2 minutes: never left running."""
+    if process.poll() is None:
+        process.send_signal(signal.SIGTERM)
+        try:
+            process.wait(timeout=120)
+        except subprocess.TimeoutExpired:
+            process.kill()
+            process.wait(timeout=30)
 
 
 def wait_ready(url: str, process: subprocess.Popen, timeout: float = 180.0) -> None:
@@ -66,7 +82,7 @@ def wait_ready(url: str, process: subprocess.Popen, timeout: float = 180.0) -> N
         if process.poll() is not None:
             raise RuntimeError(f"service exited with {process.returncode}")
         try:
-            if httpx.get(f"{url}/ready", timeout=2).status_code == 200:
+            if httpx.get(f"{url}/ready", timeout=2, trust_env=False).status_code == 200:
                 return
         except httpx.TransportError:
             pass
@@ -91,14 +107,14 @@ async def load(url: str, body: bytes, requests: int, concurrency: int) -> tuple[
                 failures += 1
 
     started = time.perf_counter()
-    async with httpx.AsyncClient(base_url=url, timeout=300) as http:
+    async with httpx.AsyncClient(base_url=url, timeout=300, trust_env=False) as http:
         await asyncio.gather(*(client_loop(http) for _ in range(concurrency)))
     return latencies, failures, time.perf_counter() - started
 
 
 def server_stats(url: str) -> dict[str, float]:
     values: dict[str, float] = {}
-    for family in text_string_to_metric_families(httpx.get(f"{url}/metrics").text):
+    for family in text_string_to_metric_families(httpx.get(f"{url}/metrics", trust_env=False).text):
         for sample in family.samples:
             if not sample.labels:
                 values[sample.name] = sample.value
@@ -131,8 +147,7 @@ def main() -> int:
             latencies, failures, seconds = asyncio.run(load(url, body, args.requests, args.concurrency))
             stats = server_stats(url)
         finally:
-            process.send_signal(signal.SIGTERM)
-            process.wait(timeout=120)
+            stop_service(process)
         p50, p95, p99 = np.percentile(np.asarray(latencies) * 1000, [50, 95, 99]) if latencies else (np.nan,) * 3
         print(
             f"{batch_size:5d}  {len(latencies) / seconds:7.2f}  {p50:7.0f}  {p95:7.0f}  {p99:7.0f}"

@@ -24,7 +24,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
 
 from export.onnx_export import (  # noqa: E402
     DYNAMIC_AXES,
@@ -87,8 +88,10 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=5)
     parser.add_argument("--skip-eager", action="store_true")
     parser.add_argument("--train-steps", type=int, default=0, help="also time this many training steps (batch 4)")
-    parser.add_argument("--out", type=Path, default=Path("docs/benchmarks/model"))
+    parser.add_argument("--out", type=Path, default=ROOT / "docs" / "benchmarks" / "model")
     args = parser.parse_args()
+    if args.weights and len(args.presets) != 1:
+        parser.error("--weights holds one model: give the one --presets it was trained as")
     torch.set_num_threads(args.threads)
 
     rows = []

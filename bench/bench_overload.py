@@ -39,7 +39,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 import loadgen  # noqa: E402
-from bench_batching import free_port, wait_ready  # noqa: E402
+from bench_batching import free_port, service_command, stop_service, wait_ready  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
@@ -47,7 +47,6 @@ sys.path.insert(0, str(ROOT))
 from service.settings import Settings  # noqa: E402
 
 DECLARED = {"200", "429", "503"}
-REQUEST_TIMEOUT_S = 30.0  # the service's default IFNET_REQUEST_TIMEOUT_S
 
 
 def start(port: int, log: Path, **settings: str) -> subprocess.Popen:
@@ -58,19 +57,7 @@ def start(port: int, log: Path, **settings: str) -> subprocess.Popen:
         **{f"IFNET_{key.upper()}": value for key, value in settings.items()},
     }
     with log.open("w") as output:
-        return subprocess.Popen(
-            [sys.executable, "-m", "service", "--port", str(port)], env=env, stdout=output, stderr=subprocess.STDOUT
-        )
-
-
-def stop(process: subprocess.Popen) -> None:
-    if process.poll() is None:
-        process.send_signal(signal.SIGTERM)
-        try:
-            process.wait(timeout=120)
-        except subprocess.TimeoutExpired:
-            process.kill()
-            process.wait(timeout=30)
+        return subprocess.Popen(service_command(port), env=env, stdout=output, stderr=subprocess.STDOUT)
 
 
 def rss_trend(samples: list[tuple[float, float]], skip_s: float) -> dict:
@@ -252,7 +239,7 @@ def main() -> int:
         "command": " ".join(["python bench/bench_overload.py", *sys.argv[1:]]),
         "when": datetime.now(UTC).strftime("%Y-%m-%d %H:%M UTC"),
         "machine": {"cpus": os.cpu_count()},
-        "request_timeout_s": REQUEST_TIMEOUT_S,
+        "request_timeout_s": Settings().request_timeout_s,  # the service's, from the same environment
         # What the service reads from the same environment: its defaults unless IFNET_* are set.
         "settings": Settings().model_dump(
             include={"max_batch_size", "model_calls", "max_queue_size", "max_in_flight", "shutdown_timeout_s"}
@@ -277,7 +264,9 @@ def main() -> int:
         record["capacity_pairs_per_s"] = capacity
         rate = args.factor * capacity
         print(f"capacity {capacity:.2f} pairs/s; offering {rate:.2f} requests/s for {args.duration:.0f} s", flush=True)
-        overload = overload_phase(url, process.pid, bodies, rate, args.duration, timeout_s=REQUEST_TIMEOUT_S + 30)
+        overload = overload_phase(
+            url, process.pid, bodies, rate, args.duration, timeout_s=record["request_timeout_s"] + 30
+        )
         record["overload"] = overload
         shown = ("requests", "statuses", "p50_ms", "accepted_p99_ms", "rejected_p99_ms", "rss", "ready_after_s")
         print("overload:", {key: overload[key] for key in shown}, flush=True)
@@ -286,7 +275,7 @@ def main() -> int:
         record["sigterm"] = sigterm
         print(f"sigterm: {sigterm}", flush=True)
     finally:
-        stop(process)
+        stop_service(process)
     text = log.read_text()
     record["log_checks"] = {
         "tracebacks": text.count("Traceback"),

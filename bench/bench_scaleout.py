@@ -200,6 +200,7 @@ def run_config(args, replicas: int, repeat: int, bodies: list[bytes]) -> RunResu
         "IFNET_IMAGE": args.image,
         "IFNET_LB_IMAGE": args.lb_image,
         "IFNET_LB_PORT": str(port),
+        "IFNET_BIND": "127.0.0.1",  # the balancer on loopback only, whatever the environment or .env say
         "IFNET_REPLICA_CPUS": str(args.replica_cpus),
     }
     base = [*compose, "-p", project, "-f", str(ROOT / "docker-compose.yml")]

@@ -20,7 +20,6 @@ each process is stopped with SIGTERM.
 import argparse
 import asyncio
 import json
-import signal
 import statistics
 import sys
 from datetime import UTC, datetime
@@ -29,7 +28,7 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 import loadgen  # noqa: E402
-from bench_batching import free_port, start_service, wait_ready  # noqa: E402
+from bench_batching import free_port, start_service, stop_service, wait_ready  # noqa: E402
 from bench_service import BATCH_SIZE_ON, MODES  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -88,10 +87,8 @@ def main() -> int:
                 flush=True,
             )
     finally:
-        for process in processes.values():
-            process.send_signal(signal.SIGTERM)
-        for process in processes.values():
-            process.wait(timeout=120)
+        for process in processes.values():  # one at a time: the second waits while the first drains
+            stop_service(process)
 
     summary = {}
     for mode in args.modes:

@@ -28,7 +28,6 @@ import asyncio
 import json
 import os
 import platform
-import signal
 import sys
 import time
 from datetime import UTC, datetime
@@ -37,7 +36,7 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 import loadgen  # noqa: E402
-from bench_batching import free_port, start_service, wait_ready  # noqa: E402
+from bench_batching import free_port, start_service, stop_service, wait_ready  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 # mode -> (max batch size, or None for --batch-size; model calls at once). `off` is the shipped
@@ -120,8 +119,7 @@ def main() -> int:
                         flush=True,
                     )
         finally:
-            process.send_signal(signal.SIGTERM)
-            process.wait(timeout=120)
+            stop_service(process)
 
     args.out.parent.mkdir(parents=True, exist_ok=True)
     record = {
