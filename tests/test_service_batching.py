@@ -8,13 +8,14 @@ may proceed: queue states are then reached deterministically, without sleeping o
 import asyncio
 import json
 import threading
+import time
 
 import numpy as np
 import pytest
 from conftest import asgi_scope
 from prometheus_client.parser import text_string_to_metric_families
 
-from service.batcher import InferenceError, MicroBatcher, QueueFullError, ShuttingDownError
+from service.batcher import InferenceError, MicroBatcher, QueueFullError, RequestTimeoutError, ShuttingDownError
 from service.engine import OnnxEngine
 from service.registration import RegistrationParams, register_clouds
 from service.schemas import RegisterRequest
@@ -386,3 +387,68 @@ async def test_the_timeout_bounds_the_whole_request_and_parsing_leaves_the_loop_
     assert health.status_code == 200
     assert answered.status_code == 504 and "within the request timeout of 0.5 s" in answered.json()["detail"]
     assert after.status_code == 200
+
+
+class RecordingEngine:
+    """Identity answers; records each call's batch size, optionally sleeping or waiting at a gate."""
+
+    def __init__(self, sleep_s: float = 0.0, gate: threading.Event | None = None):
+        self.calls: list[int] = []
+        self.sleep_s, self.gate = sleep_s, gate
+
+    def run(self, source, target):
+        if self.gate is not None:
+            assert self.gate.wait(timeout=60), "the test never opened the gate"
+        time.sleep(self.sleep_s)
+        self.calls.append(len(source))
+        return np.tile(np.eye(3), (len(source), 1, 1)), np.zeros((len(source), 3))
+
+
+def small_pair() -> tuple[np.ndarray, np.ndarray]:
+    rng = np.random.default_rng(0)
+    return rng.normal(size=(16, 3)), rng.normal(size=(16, 3))
+
+
+async def test_the_batch_delay_counts_from_the_first_pair_not_from_each_arrival():
+    """A batch waits at most max_batch_delay_ms after its first pair: later arrivals do not extend it."""
+    engine = RecordingEngine()
+    batcher = MicroBatcher(engine, max_batch_size=8, max_queue_size=8, max_batch_delay_ms=1000)
+    batcher.start()
+    first = asyncio.ensure_future(batcher.submit(*small_pair()))
+    await asyncio.sleep(0.5)  # well inside the first pair's second
+    second = asyncio.ensure_future(batcher.submit(*small_pair()))
+    await asyncio.sleep(0.8)  # 1.3 s: the batch left at 1.0 s; timed from the second pair it would wait to 1.5
+    third = asyncio.ensure_future(batcher.submit(*small_pair()))
+    await asyncio.gather(first, second, third)
+    await batcher.close(grace_s=5)
+    assert engine.calls == [2, 1]
+
+
+async def test_a_pair_that_times_out_in_the_queue_is_counted_out_once():
+    gate = threading.Event()
+    engine = RecordingEngine(gate=gate)
+    batcher = MicroBatcher(engine, max_batch_size=8, max_queue_size=8)
+    batcher.start()
+    running = asyncio.ensure_future(batcher.submit(*small_pair()))
+    await wait_until(lambda: batcher.queue_depth == 0 and batcher._running == 1, "first pair taken")
+    with pytest.raises(RequestTimeoutError):
+        await batcher.submit(*small_pair(), timeout_s=0.05)  # waits behind the gated call, gives up
+    queued = asyncio.ensure_future(batcher.submit(*small_pair()))
+    await wait_until(lambda: batcher.queue_depth == 1, "third pair queued")
+    gate.set()
+    await asyncio.gather(running, queued)
+    assert batcher.queue_depth == 0
+    started = time.perf_counter()
+    await batcher.close(grace_s=5)
+    assert time.perf_counter() - started < 1.0, "close() waited for a pair that was already gone"
+    assert engine.calls == [1, 1]
+
+
+async def test_the_call_time_estimate_follows_the_calls_that_ran():
+    """Retry-After uses a running average of model calls: 0.8 of the last estimate, 0.2 of the new call."""
+    batcher = MicroBatcher(RecordingEngine(sleep_s=0.2), max_batch_size=1, max_queue_size=4)
+    batcher.start()
+    answer = await batcher.submit(*small_pair())
+    await batcher.close(grace_s=5)
+    assert batcher._batch_seconds == pytest.approx(0.8 * 1.0 + 0.2 * answer.inference_ms / 1000, rel=0.05)
+    assert answer.inference_ms >= 200

@@ -53,6 +53,16 @@ def test_available_cpus_respects_the_affinity_mask():
     assert 1 <= available_cpus() <= len(os.sched_getaffinity(0))
 
 
+@pytest.mark.parametrize(("quota", "expected"), [(None, 4), (2.0, 2), (2.9, 2), (1.5, 1), (0.5, 1)])
+def test_a_fractional_cpu_quota_rounds_down_but_never_below_one(monkeypatch, quota, expected):
+    """1.5 CPUs give one thread: a second would only take turns with the first."""
+    import service.engine
+
+    monkeypatch.setattr(service.engine.os, "sched_getaffinity", lambda pid: set(range(4)))
+    monkeypatch.setattr(service.engine, "cgroup_cpu_limit", lambda: quota)
+    assert available_cpus() == expected
+
+
 def test_engine_threads_follow_the_usable_cpus_unless_set(tiny_model):
     assert OnnxEngine(tiny_model).threads == available_cpus()
     engine = OnnxEngine(tiny_model, threads=1)
