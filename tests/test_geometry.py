@@ -3,7 +3,14 @@
 import numpy as np
 import pytest
 
-from model.geometry import euler_to_matrix, fitness_and_rmse, registration_errors, summarise_errors
+from model.geometry import (
+    euler_to_matrix,
+    fitness_and_rmse,
+    nearest_rotation,
+    registration_errors,
+    rotation_angle_deg,
+    summarise_errors,
+)
 
 
 def test_euler_errors_wrap_around_the_half_turn():
@@ -50,3 +57,14 @@ def test_fitness_counts_the_source_points_near_the_target_and_their_rms_distance
 def test_fitness_is_zero_when_nothing_is_within_the_threshold():
     target = np.zeros((5, 3))
     assert fitness_and_rmse(target + 1.0, target, threshold=0.5) == (0.0, 0.0)
+
+
+def test_nearest_rotation_is_proper_and_removes_only_drift():
+    rotation = euler_to_matrix(np.array([30.0, -20.0, 10.0]))
+    drifted = rotation + np.random.default_rng(0).normal(scale=1e-4, size=(3, 3))
+    np.testing.assert_allclose(nearest_rotation(drifted), rotation, atol=1e-3)
+    for reflection in (np.diag([1.0, 1.0, -1.0]), -rotation):  # never answered with a reflection
+        proper = nearest_rotation(reflection)
+        np.testing.assert_allclose(proper @ proper.T, np.eye(3), atol=1e-12)
+        assert np.linalg.det(proper) == pytest.approx(1.0)
+    assert rotation_angle_deg(nearest_rotation(rotation), rotation) < 1e-6

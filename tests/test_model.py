@@ -246,6 +246,17 @@ def test_losses_near_zero_for_perfect_alignment_and_larger_when_wrong():
     assert pseudo_consistency_loss(flat, keypoint_idx).item() > 5.0  # log(512) = 6.2
 
 
+def test_the_global_loss_looks_both_ways():
+    """Every source point near a target point is not enough: every target point needs a source point too."""
+    target = torch.randn(1, 512, 3)
+    collapsed = target[:, :1].expand(1, 512, 3)  # the whole source on one target point
+    assert global_registration_loss(collapsed, target, 0.01).item() > 1e-4
+    other = torch.randn(1, 512, 3)
+    torch.testing.assert_close(
+        global_registration_loss(other, target, 0.01), global_registration_loss(target, other, 0.01)
+    )
+
+
 def test_global_weight_scales_only_the_global_loss():
     losses = Losses(torch.tensor(0.5), torch.tensor(2.0), torch.tensor(3.0))
     assert losses.total.item() == 5.5  # the paper's equal weights

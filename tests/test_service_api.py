@@ -369,11 +369,16 @@ async def test_api_key(serve, tiny_model):
     async with serve(settings_for(tiny_model, api_key="s3cret")) as (app, client):
         without = await client.post("/register", json=body())
         wrong = await client.post("/register", json=body(), headers={"X-API-Key": "guess"})
+        near_misses = [  # a prefix, an empty key, an empty bearer: all wrong
+            await client.post("/register", json=body(), headers=headers)
+            for headers in ({"X-API-Key": "s3cre"}, {"X-API-Key": ""}, {"Authorization": "Bearer "})
+        ]
         with_header = await client.post("/register", json=body(), headers={"X-API-Key": "s3cret"})
         with_bearer = await client.post("/register", json=body(), headers={"Authorization": "Bearer s3cret"})
         v2_without = await client.post("/v2/models/ifnet/infer", json={"inputs": []})
         health = await client.get("/health")
     assert without.status_code == wrong.status_code == v2_without.status_code == 401
+    assert [response.status_code for response in near_misses] == [401, 401, 401]
     assert "X-API-Key" in without.json()["detail"] and without.headers["www-authenticate"] == "Bearer"
     assert with_header.status_code == with_bearer.status_code == health.status_code == 200
 
@@ -500,6 +505,43 @@ async def test_unknown_routes_are_404_json(serve, tiny_model):
 
 def v2_tensor(name: str, clouds: np.ndarray) -> dict:
     return {"name": name, "shape": list(clouds.shape), "datatype": "FP32", "data": clouds.ravel().tolist()}
+
+
+async def test_v2_returns_only_the_outputs_asked_for(serve, tiny_model):
+    request = {
+        "inputs": [v2_tensor("source", SOURCE[None]), v2_tensor("target", TARGET[None])],
+        "outputs": [{"name": "translation"}],
+    }
+    async with serve(settings_for(tiny_model)) as (app, client):
+        answer = (await client.post("/v2/models/ifnet/infer", json=request)).json()
+    assert [(output["name"], output["shape"]) for output in answer["outputs"]] == [("translation", [1, 3])]
+
+
+async def test_max_points_may_reach_the_services_limit_and_not_beyond(serve, tiny_model):
+    async with serve(settings_for(tiny_model, max_network_points=256)) as (app, client):
+        at_limit = await client.post("/register", json=body(max_points=256))
+        beyond = await client.post("/register", json=body(max_points=257))
+    assert at_limit.status_code == 200, at_limit.text
+    assert at_limit.json()["points"]["source"]["network_points"] == 256
+    assert beyond.status_code == 422 and beyond.json()["errors"][0]["field"] == "max_points"
+
+
+async def test_health_percentiles_cover_only_the_latest_window(serve, tiny_model):
+    async with serve(settings_for(tiny_model, latency_window=10)) as (app, client):
+        for _ in range(12):
+            assert (await client.post("/register", json=body())).status_code == 200
+        latency = (await client.get("/health")).json()["latency"]
+    assert latency["count"] == 10
+
+
+def test_the_latency_window_forgets_old_requests():
+    from service.metrics import LatencyWindow
+
+    window = LatencyWindow(10)
+    for seconds in [0.1, 0.1] + [1e-6] * 10:
+        window.add(seconds)
+    summary = window.summary()
+    assert summary["count"] == 10 and summary["p99_ms"] < 0.01
 
 
 async def test_v2_metadata_and_health(serve, tiny_model):

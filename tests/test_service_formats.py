@@ -95,6 +95,25 @@ def test_wrong_npy_shape_and_nan_values_are_named():
         read_cloud(npy_bytes(with_nan), "target", LIMIT)
 
 
+@pytest.mark.parametrize("encoding", [Encoding.ASCII, Encoding.BINARY, Encoding.BINARY_COMPRESSED])
+def test_nan_rows_in_a_pcd_are_named_not_dropped(encoding):
+    """Organised scans mark missing returns with NaN rows; the user decides what to do with them."""
+    with_nan = POINTS.copy()
+    with_nan[7] = np.nan
+    with pytest.raises(InvalidInput, match="NaN or infinite.*index 7"):
+        read_cloud(pcd_bytes(with_nan, encoding), "source", LIMIT)
+
+
+def test_big_endian_binary_ply_reads_like_little_endian():
+    vertices = np.zeros(len(POINTS), dtype=[("x", ">f4"), ("y", ">f4"), ("z", ">f4")])
+    for index, axis in enumerate("xyz"):
+        vertices[axis] = POINTS[:, index]
+    stream = io.BytesIO()
+    PlyData([PlyElement.describe(vertices, "vertex")], byte_order=">").write(stream)
+    assert b"format binary_big_endian" in stream.getvalue()[:100]
+    np.testing.assert_array_equal(read_cloud(stream.getvalue(), "source", LIMIT), POINTS)
+
+
 def test_declared_point_counts_above_the_limit_are_refused_before_decoding():
     """Headers that claim huge clouds in a few bytes must not make the service allocate them."""
     fake_npy = npy_bytes(np.zeros((2000, 3), np.float32))[:200]  # header says 2000 rows; body cut short

@@ -81,6 +81,23 @@ def test_the_command_line_client_names_what_went_wrong(tmp_path):
     assert "Traceback" not in unreachable.stderr + bad_init.stderr
 
 
+def test_the_command_line_client_sends_its_options(tmp_path, monkeypatch, capsys):
+    from service import client
+
+    sent = {}
+
+    def register_files(self, source, target, **options):
+        sent.update(options)
+        return {"transform": np.eye(4).tolist(), "fitness": 1.0, "inlier_rmse": 0.0, "fitness_threshold": 0.1,
+                "model": {"name": "ifnet", "version": "0" * 12}, "timings_ms": {"total_ms": 1.0}}  # fmt: skip
+
+    monkeypatch.setattr(client.RegistrationClient, "register_files", register_files)
+    argv = ["s.ply", "t.ply", "--refine-distance", "0.25", "--max-points", "512", "--sampling", "random", "--seed", "3"]
+    assert client.main(argv) == 0
+    assert sent == {"init": None, "refine": {"max_distance": 0.25}, "max_points": 512, "sampling": "random", "seed": 3}
+    assert capsys.readouterr().out.startswith("transform (source -> target):")
+
+
 def test_sigterm_finishes_in_flight_requests_then_exits(tmp_path, tiny_model):
     # Clouds big enough that parsing and sampling keep each request busy for a while.
     rng = np.random.default_rng(1)

@@ -247,3 +247,17 @@ def test_init_must_be_a_rigid_transform():
         with pytest.raises(InvalidInput, match=message) as caught:
             as_rigid_transform(matrix)
         assert caught.value.field == "init"
+
+
+def test_upsampled_only_when_a_cloud_has_fewer_distinct_points_than_the_network_takes():
+    cloud = np.random.default_rng(3).normal(size=(64, 3))
+
+    async def identity(source: np.ndarray, target: np.ndarray) -> Prediction:
+        return Prediction(np.eye(3), np.zeros(3))
+
+    params = RegistrationParams(num_points=64, min_points=8)
+    exact = register(cloud, cloud, params, identity)
+    short = register(cloud[:63], cloud, params, identity)
+    assert (exact.source.upsampled, exact.source.network_points) == (False, 64)
+    assert (short.source.upsampled, short.source.network_points) == (True, 64)
+    assert short.target.upsampled is False
