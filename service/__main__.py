@@ -24,7 +24,11 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     parser.add_argument("--port", type=int, help="TCP port (default 8000, env IFNET_PORT)")
     parser.add_argument("--model-path", help="ONNX model (default: the shipped service/models/ifnet.onnx)")
     parser.add_argument("--threads", type=int, help="ONNX Runtime intra-op threads (default: the usable CPUs)")
-    parser.add_argument("--log-level", choices=["critical", "error", "warning", "info", "debug"])
+    parser.add_argument(
+        "--log-level",
+        choices=["critical", "error", "warning", "info", "debug"],
+        help="default info, env IFNET_LOG_LEVEL",
+    )
     return parser.parse_args(argv)
 
 

@@ -128,8 +128,10 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--refine", action="store_true", help="refine with ICP on the full clouds")
     parser.add_argument("--refine-distance", type=float, help="ICP correspondence distance, in the clouds' units")
     parser.add_argument("--max-points", type=int, help="points per cloud given to the network")
-    parser.add_argument("--sampling", choices=["fps", "random"])
-    parser.add_argument("--seed", type=int)
+    parser.add_argument(
+        "--sampling", choices=["fps", "random"], help="subsampling to the network's point count (service default: fps)"
+    )
+    parser.add_argument("--seed", type=int, help="seed of random sampling and upsampling (service default: 0)")
     parser.add_argument("--output", help="write the moved source cloud to this PLY file")
     parser.add_argument("--json", action="store_true", help="print the service's whole JSON answer")
     parser.add_argument("--timeout", type=float, default=120.0, help="seconds to wait for the answer")
