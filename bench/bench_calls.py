@@ -14,16 +14,15 @@ Writes docs/benchmarks/calls.json (read by bench/report.py).
 """
 
 import argparse
-import json
 import sys
 import threading
 import time
-from datetime import UTC, datetime
 from pathlib import Path
 
 import numpy as np
 import onnxruntime as ort
 from machine_check import DEFAULT_MODEL, ROOT, timed_model, warm_sessions
+from records import run_header, write_record
 
 
 def pairs_per_second(model: ort.InferenceSession, feeds: dict, calls_at_once: int, seconds: float) -> float:
@@ -71,16 +70,13 @@ def main() -> int:
     print(f"median ratio {np.median(ratios):.2f}x (range {min(ratios):.2f}-{max(ratios):.2f}x)")
 
     record = {
-        "command": " ".join(["python bench/bench_calls.py", *sys.argv[1:]]),
-        "when": datetime.now(UTC).strftime("%Y-%m-%d %H:%M UTC"),
+        **run_header(),
         "model": timed_model(one_call, args.model),
         "window_s": args.window,
         "windows": windows,
         "median_ratio": float(np.median(ratios)),
     }
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(record, indent=1))
-    print(f"wrote {args.out}")
+    write_record(args.out, record)
     return 0
 
 

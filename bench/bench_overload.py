@@ -21,7 +21,6 @@ process is always stopped.
 
 import argparse
 import asyncio
-import json
 import os
 import signal
 import subprocess
@@ -30,7 +29,6 @@ import tempfile
 import threading
 import time
 from collections import Counter
-from datetime import UTC, datetime
 from pathlib import Path
 
 import httpx
@@ -40,6 +38,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 import loadgen  # noqa: E402
 from bench_batching import free_port, service_command, stop_service, wait_ready  # noqa: E402
+from records import run_header, write_record  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
@@ -234,10 +233,8 @@ def main() -> int:
         return 2
     bodies = loadgen.model_sized_bodies(768) if args.payload == "model" else loadgen.scan_bodies("json")
     log = Path(tempfile.mkdtemp(prefix="ifnet-overload-")) / "service.log"
-    args.out.parent.mkdir(parents=True, exist_ok=True)
     record: dict = {
-        "command": " ".join(["python bench/bench_overload.py", *sys.argv[1:]]),
-        "when": datetime.now(UTC).strftime("%Y-%m-%d %H:%M UTC"),
+        **run_header(),
         "machine": {"cpus": os.cpu_count()},
         "request_timeout_s": Settings().request_timeout_s,  # the service's, from the same environment
         # What the service reads from the same environment: its defaults unless IFNET_* are set.
@@ -283,9 +280,9 @@ def main() -> int:
         "finished": "Finished server process" in text,
     }
     record["verdict"] = verdict(record)
-    args.out.write_text(json.dumps(record, indent=1))
     print(f"verdict: {record['verdict']}")
-    print(f"wrote {args.out} (server log: {log})")
+    write_record(args.out, record)
+    print(f"server log: {log}")
     return 0
 
 

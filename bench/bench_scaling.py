@@ -19,10 +19,8 @@ each process is stopped with SIGTERM.
 
 import argparse
 import asyncio
-import json
 import statistics
 import sys
-from datetime import UTC, datetime
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
@@ -30,6 +28,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 import loadgen  # noqa: E402
 from bench_batching import free_port, start_service, stop_service, wait_ready  # noqa: E402
 from bench_service import BATCH_SIZE_ON, MODES  # noqa: E402
+from records import run_header, write_record  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 CLIENT_COUNTS = (1, 16)
@@ -110,16 +109,13 @@ def main() -> int:
         )
 
     record = {
-        "command": " ".join(["python bench/bench_scaling.py", *sys.argv[1:]]),
-        "when": datetime.now(UTC).strftime("%Y-%m-%d %H:%M UTC"),
+        **run_header(),
         "model": served,
         "window_s": args.window,
         "rounds": rounds,
         "modes": summary,
     }
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(record, indent=1))
-    print(f"wrote {args.out}")
+    write_record(args.out, record)
     return 0
 
 

@@ -25,18 +25,17 @@ and each process is stopped with SIGTERM.
 
 import argparse
 import asyncio
-import json
 import os
 import platform
 import sys
 import time
-from datetime import UTC, datetime
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 import loadgen  # noqa: E402
 from bench_batching import free_port, start_service, stop_service, wait_ready  # noqa: E402
+from records import run_header, write_record  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 # mode -> (max batch size, or None for --batch-size; model calls at once). `off` is the shipped
@@ -121,18 +120,15 @@ def main() -> int:
         finally:
             stop_service(process)
 
-    args.out.parent.mkdir(parents=True, exist_ok=True)
     record = {
-        "command": " ".join(["python bench/bench_service.py", *sys.argv[1:]]),
-        "when": datetime.now(UTC).strftime("%Y-%m-%d %H:%M UTC"),
+        **run_header(),
         "machine": {"cpus": os.cpu_count(), "arch": platform.machine(), "loadavg_at_end": os.getloadavg()},
         "model": served,
         "duration_s": args.duration,
         "warmup_s": args.warmup,
         "cells": cells,
     }
-    args.out.write_text(json.dumps(record, indent=1))
-    print(f"wrote {args.out}")
+    write_record(args.out, record)
     return 0
 
 
