@@ -17,6 +17,7 @@ Every number in the report comes from those files; the goals are checked against
 """
 
 import argparse
+import functools
 import json
 import math
 import sys
@@ -451,7 +452,12 @@ def goals_section(model, profile, service, scaling, overload, checks, lines: lis
         )
     model_rows = (model or {}).get("rows", [])
     base = next(
-        (r for r in model_rows if r["batch"] == 1 and r["points"] == 768 and r["preset"] == shipped_preset()), None
+        (
+            r
+            for r in model_rows
+            if r["batch"] == 1 and r["points"] == 768 and r["preset"] == shipped_metadata().get("preset")
+        ),
+        None,
     )
     rows.append(
         (
@@ -638,14 +644,9 @@ def reliability_section(lines: list[str]) -> None:
 
 def versions_section(model, profile, service, overload, timed: dict[str, dict | None], lines: list[str]) -> None:
     """Which weights each result file measured, so that a mix of models shows."""
-    import onnxruntime as ort
-
     found: dict[str, str] = {}
     if SHIPPED_MODEL.is_file():
-        options = ort.SessionOptions()
-        options.log_severity_level = 3
-        metadata = ort.InferenceSession(str(SHIPPED_MODEL), options, providers=["CPUExecutionProvider"]).get_modelmeta()
-        weights = metadata.custom_metadata_map.get("weights_sha256")
+        weights = shipped_metadata().get("weights_sha256")
         found["`service/models/ifnet.onnx` now"] = (weights or file_sha256(SHIPPED_MODEL))[:12]
     if model is not None:
         command = model.get("command") or ""
@@ -724,17 +725,22 @@ def machine_section(checks: list[dict] | None, lines: list[str]) -> None:
     ]
 
 
+@functools.cache
 def shipped_file_hash() -> str:
     return file_sha256(SHIPPED_MODEL)[:12] if SHIPPED_MODEL.is_file() else "missing"
 
 
-def shipped_preset() -> str | None:
+@functools.cache
+def shipped_metadata() -> dict[str, str]:
+    """The served ONNX file's metadata (read once: opening a session costs a second or two)."""
     import onnxruntime as ort
 
     if not SHIPPED_MODEL.is_file():
-        return None
-    session = ort.InferenceSession(str(SHIPPED_MODEL), providers=["CPUExecutionProvider"])
-    return session.get_modelmeta().custom_metadata_map.get("preset")
+        return {}
+    options = ort.SessionOptions()
+    options.log_severity_level = 3
+    session = ort.InferenceSession(str(SHIPPED_MODEL), options, providers=["CPUExecutionProvider"])
+    return dict(session.get_modelmeta().custom_metadata_map)
 
 
 def timed_model_label(check: dict) -> str:
