@@ -40,14 +40,14 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     parser.add_argument("--output", type=Path, default=DEFAULT_OUTPUT, help="where the checked .onnx goes")
     parser.add_argument(
         "--iterations",
-        type=int,
+        type=positive_int,
         default=None,
         help="blocks per time step in the exported graph (default: as trained); the block's weights are "
         "shared, so any count runs; measured effect: docs/training/experiments/README.md",
     )
     parser.add_argument(
         "--time-steps",
-        type=int,
+        type=positive_int,
         default=None,
         help="passes over the iterations, each fed back the last pass's target features (default: as trained)",
     )
@@ -60,11 +60,7 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
         "--translation-tol", type=float, default=1e-3, help="max |t_onnx - t_torch| per entry (unit-sphere units)"
     )
     parser.add_argument("--angle-tol", type=float, default=0.01, help="max difference of rotation errors (deg)")
-    args = parser.parse_args(argv)
-    for option, count in (("--iterations", args.iterations), ("--time-steps", args.time_steps)):
-        if count is not None and count < 1:
-            parser.error(f"{option} must be at least 1, got {count}")
-    return args
+    return parser.parse_args(argv)
 
 
 @reports_user_errors(PROG)

@@ -76,6 +76,15 @@ class RegistrationGraph(nn.Module):
         return out.rotation, out.translation
 
 
+def read_weights(path: Path, what: str) -> dict:
+    """The state of shipped weights or a training checkpoint (model state and config at least), or a
+    UserError naming `what` (the option or role of the file) and the path."""
+    state = load_torch_file(path, what)
+    if "model" not in state or "config" not in state:
+        raise UserError(f"{what} {path}: not IFNet weights or a training checkpoint (no model state and config)")
+    return state
+
+
 def load_checkpoint(path: Path, iterations: int | None = None, time_steps: int | None = None) -> tuple[IFNet, str]:
     """The model in eval mode from a training checkpoint or shipped weights, and the file's sha256.
 
@@ -84,9 +93,7 @@ def load_checkpoint(path: Path, iterations: int | None = None, time_steps: int |
     runs the same shared weights, so the weights run at any counts, and the cost grows with
     their product.
     """
-    state = load_torch_file(path, "weights file")
-    if "model" not in state or "config" not in state:
-        raise UserError(f"weights file {path}: not IFNet weights or a training checkpoint (no model state and config)")
+    state = read_weights(path, "weights file")
     config = IFNetConfig.from_dict(state["config"])
     unroll = {"n_iters": iterations, "time_steps": time_steps}
     config = replace(config, **{k: v for k, v in unroll.items() if v is not None})  # rejects counts below 1

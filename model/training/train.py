@@ -19,7 +19,7 @@ import torch
 from torch.utils.data import DataLoader, Subset
 from tqdm import tqdm
 
-from export.onnx_export import load_checkpoint
+from export.onnx_export import load_checkpoint, read_weights
 from model.geometry import rotation_angle_deg
 from model.ifnet import PRESETS, IFNet, IFNetConfig, preset
 from model.training.cli import (
@@ -168,9 +168,7 @@ def load_teacher(path: Path, device: str) -> IFNet:
 
 
 def load_weights_into(model: IFNet, path: Path, option: str) -> None:
-    state = load_torch_file(path, option)
-    if "model" not in state or "config" not in state:
-        raise UserError(f"{option} {path}: not IFNet weights (no model state and config in it)")
+    state = read_weights(path, option)
     try:
         model.load_state_dict(state["model"])
     except RuntimeError:  # parameter shapes differ
