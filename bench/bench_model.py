@@ -97,7 +97,7 @@ def main() -> None:
     rows = []
     for name in args.presets:
         if args.weights:
-            model, _ = load_checkpoint(args.weights)
+            model = load_checkpoint(args.weights).model
         else:
             torch.manual_seed(0)
             model = IFNet(preset(name)).eval()

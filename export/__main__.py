@@ -70,10 +70,8 @@ def main(argv: list[str] | None = None) -> int:
         args.output.parent.mkdir(parents=True, exist_ok=True)
     except (FileExistsError, NotADirectoryError):
         raise UserError(f"--output {args.output}: a file stands where its folder would be") from None
-    model, weights_sha256 = load_checkpoint(args.weights, args.iterations, args.time_steps)
-    preset_name = args.preset_name or torch.load(args.weights, map_location="cpu", weights_only=True).get(
-        "preset", "custom"
-    )
+    model, weights_sha256, weights_preset = load_checkpoint(args.weights, args.iterations, args.time_steps)
+    preset_name = args.preset_name or weights_preset
     n = model.config.num_points
     example = (torch.rand(1, n, 3) - 0.5, torch.rand(1, n, 3) - 0.5)
 

@@ -12,6 +12,7 @@ import json
 import time
 from dataclasses import dataclass, replace
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 import onnx
@@ -85,8 +86,21 @@ def read_weights(path: Path, what: str) -> dict:
     return state
 
 
-def load_checkpoint(path: Path, iterations: int | None = None, time_steps: int | None = None) -> tuple[IFNet, str]:
-    """The model in eval mode from a training checkpoint or shipped weights, and the file's sha256.
+def weights_preset(state: dict) -> str:
+    """The preset a weights file or checkpoint was trained as (checkpoints before the top-level
+    entry kept it only among their arguments); "custom" where neither says."""
+    return state.get("preset") or state.get("args", {}).get("preset") or "custom"
+
+
+class LoadedWeights(NamedTuple):
+    model: IFNet  # in eval mode
+    sha256: str  # of the file
+    preset: str
+
+
+def load_checkpoint(path: Path, iterations: int | None = None, time_steps: int | None = None) -> LoadedWeights:
+    """The model in eval mode from a training checkpoint or shipped weights, the file's sha256 and
+    its preset.
 
     `iterations` and `time_steps` override the unroll the weights were trained with (`n_iters`
     blocks per time step, `time_steps` passes with the target features fed back): every block
@@ -99,7 +113,7 @@ def load_checkpoint(path: Path, iterations: int | None = None, time_steps: int |
     config = replace(config, **{k: v for k, v in unroll.items() if v is not None})  # rejects counts below 1
     model = IFNet(config)
     model.load_state_dict(state["model"])
-    return model.eval(), file_sha256(path)
+    return LoadedWeights(model.eval(), file_sha256(path), weights_preset(state))
 
 
 def export_onnx(

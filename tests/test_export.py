@@ -92,7 +92,7 @@ def stacked_pairs(batch: int) -> tuple:
 @pytest.mark.parametrize("batch", [1, 4])
 def test_each_block_matches_torch_on_the_same_inputs(tmp_path, batch):
     """On the shipped weights: with random weights one block's float32 noise alone reaches ~1e-3."""
-    model = load_checkpoint(DEFAULT_WEIGHTS)[0]
+    model = load_checkpoint(DEFAULT_WEIGHTS).model
     source, target = stacked_pairs(batch)
     first = export_block(model, False, tmp_path / "block_t0.onnx", source.shape[1])
     later = export_block(model, True, tmp_path / "block_fb.onnx", source.shape[1])
@@ -184,7 +184,7 @@ def test_committed_onnx_matches_committed_weights():
     assert metadata["weights_sha256"] == file_sha256(DEFAULT_WEIGHTS), "ONNX exported from other weights"
     record = json.loads(DEFAULT_WEIGHTS.with_suffix(".json").read_text())
     assert record["sha256"] == file_sha256(DEFAULT_WEIGHTS)
-    model, _ = load_checkpoint(DEFAULT_WEIGHTS)
+    model = load_checkpoint(DEFAULT_WEIGHTS).model
     assert IFNetConfig.from_dict(json.loads(metadata["config"])) == model.config
     assert int(metadata["num_points"]) == model.config.num_points
     # The recorded minimum is the graph's: it runs at that many points per cloud and not below.
@@ -205,8 +205,8 @@ def test_committed_onnx_matches_committed_weights():
 def test_more_iterations_run_the_same_block_longer():
     """The override changes only how often the shared block runs: the first time step's first
     three blocks see the same inputs, so they give what the trained 3-iteration model gives."""
-    trained, _ = load_checkpoint(DEFAULT_WEIGHTS)
-    longer, _ = load_checkpoint(DEFAULT_WEIGHTS, iterations=5)
+    trained = load_checkpoint(DEFAULT_WEIGHTS).model
+    longer = load_checkpoint(DEFAULT_WEIGHTS, iterations=5).model
     assert longer.config.n_iters == 5 and longer.config.time_steps == trained.config.time_steps
     source, target = stacked_pairs(1)
     with torch.no_grad():
@@ -228,11 +228,26 @@ def test_export_command_records_the_unroll(tmp_path):
     config = json.loads(metadata["config"])
     assert (config["n_iters"], config["time_steps"]) == (2, 1)
     assert metadata["weights_sha256"] == file_sha256(DEFAULT_WEIGHTS)
+    assert metadata["preset"] == torch.load(DEFAULT_WEIGHTS, weights_only=True)["preset"]
     exported = IFNetConfig.from_dict(config)
     assert (metadata["num_points"], metadata["min_points"]) == (str(exported.num_points), str(exported.graph_k))
     for option in ("--iterations", "--time-steps"):
         with pytest.raises(SystemExit):
             parse_args([option, "0"])
+
+
+@pytest.mark.parametrize(
+    ("entries", "expected"),
+    [({"preset": "fast"}, "fast"), ({"args": {"preset": "small"}}, "small"), ({}, "custom")],
+    ids=["shipped weights", "checkpoint keeping it among its arguments", "neither"],
+)
+def test_a_weights_file_is_loaded_with_its_preset(tmp_path, entries, expected):
+    model = IFNet(preset("fast", n_iters=1, time_steps=1))
+    path = tmp_path / "weights.pt"
+    torch.save({"model": model.state_dict(), "config": model.config.to_dict(), **entries}, path)
+    loaded = load_checkpoint(path)
+    assert (loaded.preset, loaded.sha256) == (expected, file_sha256(path))
+    assert loaded.model.config == model.config and not loaded.model.training
 
 
 def test_parity_fails_on_any_of_its_three_measures():

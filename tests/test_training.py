@@ -254,7 +254,7 @@ def shipped_model_errors(pairs: list[dict]) -> tuple[np.ndarray, np.ndarray]:
     from export.onnx_export import load_checkpoint
     from model.geometry import registration_errors
 
-    model, _ = load_checkpoint(DEFAULT_WEIGHTS)
+    model = load_checkpoint(DEFAULT_WEIGHTS).model
     source = torch.from_numpy(np.stack([p["source"] for p in pairs]))
     target = torch.from_numpy(np.stack([p["target"] for p in pairs]))
     with torch.no_grad():

@@ -67,7 +67,7 @@ def network_runner(model_path: Path, threads: int) -> Registration:
     from export.onnx_export import load_checkpoint
 
     torch.set_num_threads(threads)
-    model, _ = load_checkpoint(model_path)
+    model = load_checkpoint(model_path).model
 
     def run_torch(source: np.ndarray, target: np.ndarray):
         with torch.no_grad():

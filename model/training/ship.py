@@ -17,7 +17,7 @@ from pathlib import Path
 
 import torch
 
-from export.onnx_export import DEFAULT_WEIGHTS
+from export.onnx_export import DEFAULT_WEIGHTS, weights_preset
 from model.training.cli import UserError, load_torch_file, reports_user_errors
 from service.engine import file_sha256
 
@@ -56,12 +56,8 @@ def read_checkpoint(checkpoint: Path) -> dict:
     return state
 
 
-def checkpoint_preset(state: dict) -> str:
-    return state.get("preset") or state["args"]["preset"]
-
-
 def ship(state: dict, checkpoint: Path, weights: Path) -> dict:
-    preset_name = checkpoint_preset(state)
+    preset_name = weights_preset(state)
     weights.parent.mkdir(parents=True, exist_ok=True)
     torch.save({"model": state["model"], "config": state["config"], "preset": preset_name}, weights)
     log_path = checkpoint.parent / "log.csv"
@@ -118,7 +114,7 @@ def main(argv: list[str] | None = None) -> None:
         parser.error("give --checkpoint (ship a training run) and/or --evaluation (add its summary to the record)")
     state = read_checkpoint(args.checkpoint) if args.checkpoint else None
     if args.weights is None:
-        args.weights = DEFAULT_WEIGHTS.with_name(f"ifnet-{checkpoint_preset(state)}.pt") if state else DEFAULT_WEIGHTS
+        args.weights = DEFAULT_WEIGHTS.with_name(f"ifnet-{weights_preset(state)}.pt") if state else DEFAULT_WEIGHTS
     record_path = args.weights.with_suffix(".json")
     if state is None and not record_path.is_file():
         raise UserError(f"{record_path} not found: ship a checkpoint first (--checkpoint)")

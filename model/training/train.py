@@ -163,7 +163,7 @@ def training_pairs(shapes: np.ndarray, args: argparse.Namespace) -> Registration
 
 
 def load_teacher(path: Path, device: str) -> IFNet:
-    teacher, _ = load_checkpoint(path)
+    teacher = load_checkpoint(path).model
     return teacher.to(device).requires_grad_(False)
 
 
