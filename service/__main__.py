@@ -12,6 +12,7 @@ import sys
 from pydantic import ValidationError
 
 from service.engine import ModelLoadError, OnnxEngine
+from service.protocol import head_deadline_protocol
 from service.settings import Settings
 
 
@@ -58,6 +59,7 @@ def main(argv: list[str] | None = None) -> int:
         port=settings.port,
         log_level=settings.log_level,
         timeout_graceful_shutdown=math.ceil(settings.shutdown_timeout_s),  # uvicorn takes whole seconds
+        http=head_deadline_protocol(settings.request_head_timeout_s),
     )
     return 0
 

@@ -54,6 +54,12 @@ class Settings(BaseSettings):
         gt=0.0,
         description="Longest time for a whole request (body, parsing, sampling, queue, inference); longer gets 504.",
     )
+    request_head_timeout_s: float = Field(
+        10.0,
+        gt=0.0,
+        description="Longest time a connection may take to send a request's headers, from opening or from its "
+        "previous answer; then it is closed (408 if part of a head arrived). Bounds idle and slowloris connections.",
+    )
     max_body_bytes: int = Field(64 * 1024 * 1024, ge=1024, description="Largest request body; larger gets 413.")
     min_points: int = Field(32, ge=8, description="Fewest distinct points a cloud must have.")
     max_cloud_points: int = Field(500_000, ge=1, description="Most points one cloud may have.")

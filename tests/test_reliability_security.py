@@ -7,6 +7,8 @@
   without the key is answered 401 before its body is read.
 - The body size limit is enforced before parsing: a declared Content-Length over the limit is
   answered 413 without reading the body, a streamed one without calling any parser.
+- A connection that does not complete a request head in time (silent, or trickling its headers,
+  slowloris) is closed; the body's own time is bounded by the request timeout instead.
 
 Related checks elsewhere: basic 401/413 behaviour in test_service_api.py, the reader-level
 pickle refusal in test_service_formats.py, the non-root container in test_container.py.
@@ -14,15 +16,19 @@ pickle refusal in test_service_formats.py, the non-root container in test_contai
 
 import ast
 import asyncio
+import http.client
 import io
 import json
 import pickle
+import socket
+import time
 import zipfile
 from pathlib import Path
 
+import httpx
 import numpy as np
 import pytest
-from conftest import asgi_scope
+from conftest import asgi_scope, service_process
 
 import service
 from service.settings import Settings
@@ -359,3 +365,68 @@ async def test_a_streamed_body_over_the_limit_never_reaches_a_parser(serve, tiny
         assert sum(pulled) <= limit + 500  # reading stopped at the chunk that crossed the limit
     assert parsed == ["json"]  # only the small request below the limit was parsed
     assert small.status_code == 200
+
+
+# ---------------------------------------------------------------- connections that never send a request
+
+
+def read_until_closed(connection: socket.socket) -> bytes:
+    received = b""
+    while chunk := connection.recv(65536):  # the socket's timeout is the hang guard
+        received += chunk
+    return received
+
+
+def trickle(connection: socket.socket, data: bytes, seconds: float) -> None:
+    """Send data a few bytes at a time over `seconds`, stopping quietly if the server closes."""
+    pieces = [data[i : i + 4] for i in range(0, len(data), 4)]
+    try:
+        for piece in pieces:
+            connection.sendall(piece)
+            time.sleep(seconds / len(pieces))
+    except OSError:  # closed by the server mid-trickle
+        pass
+
+
+def test_connections_must_send_their_request_head_in_time(tmp_path, tiny_model):
+    """uvicorn alone keeps a silent or slowloris connection open forever; the service closes it."""
+    head_timeout_s = 1.5
+    body = json.dumps({"source": SOURCE.tolist(), "target": TARGET.tolist()}).encode()
+    head = (
+        f"POST /register HTTP/1.1\r\nHost: 127.0.0.1\r\nContent-Type: application/json\r\n"
+        f"Content-Length: {len(body)}\r\n\r\n"
+    ).encode()
+    with service_process(tmp_path, tiny_model, request_head_timeout_s=str(head_timeout_s)) as (_, url, log):
+        address = ("127.0.0.1", httpx.URL(url).port)
+
+        with socket.create_connection(address, timeout=10) as silent:
+            started = time.monotonic()
+            assert read_until_closed(silent) == b""  # closed without an answer: nothing was asked
+            assert head_timeout_s <= time.monotonic() - started < head_timeout_s + 3
+
+        with socket.create_connection(address, timeout=10) as slowloris:
+            started = time.monotonic()
+            trickle(slowloris, head[:-4], seconds=4 * head_timeout_s)  # every byte would reset uvicorn's keep-alive
+            answer = read_until_closed(slowloris)
+            assert answer.startswith(b"HTTP/1.1 408 ") and b"request headers not received" in answer
+            assert time.monotonic() - started < head_timeout_s + 2  # cut off mid-trickle
+
+        with socket.create_connection(address, timeout=30) as slow_body:  # the head in time, the body slowly
+            slow_body.sendall(head)
+            trickle(slow_body, body, seconds=2 * head_timeout_s)
+            assert slow_body.recv(65536).startswith(b"HTTP/1.1 200 ")
+
+        kept_alive = http.client.HTTPConnection(*address, timeout=30)
+        sockets = []
+        for _ in range(3):  # requests on one connection, each within the deadline of the last answer
+            kept_alive.request("POST", "/register", body=body, headers={"Content-Type": "application/json"})
+            response = kept_alive.getresponse()
+            assert response.status == 200, response.read()
+            response.read()
+            sockets.append(kept_alive.sock)
+            time.sleep(0.2)
+        assert all(used is sockets[0] for used in sockets)  # never reconnected behind the test's back
+        trickle(kept_alive.sock, head[:-4], seconds=4 * head_timeout_s)  # the next head is timed as well
+        assert read_until_closed(kept_alive.sock).startswith(b"HTTP/1.1 408 ")
+        kept_alive.close()
+    assert "request head incomplete" in log.read_text()
