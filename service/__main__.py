@@ -12,7 +12,6 @@ import sys
 from pydantic import ValidationError
 
 from service.engine import ModelLoadError, OnnxEngine
-from service.protocol import head_deadline_protocol
 from service.settings import Settings
 
 
@@ -52,6 +51,7 @@ def main(argv: list[str] | None = None) -> int:
     import uvicorn
 
     from service.app import create_app
+    from service.protocol import head_deadline_protocol
 
     uvicorn.run(
         create_app(settings, engine=engine),
