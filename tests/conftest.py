@@ -168,6 +168,14 @@ def serve():
 # ---------------------------------------------------------------- plain helpers (import from conftest)
 
 
+def register_head(body: bytes) -> bytes:
+    """The raw HTTP/1.1 head of a JSON POST /register carrying `body`, for tests that write to a socket."""
+    return (
+        f"POST /register HTTP/1.1\r\nHost: 127.0.0.1\r\nContent-Type: application/json\r\n"
+        f"Content-Length: {len(body)}\r\n\r\n"
+    ).encode()
+
+
 def free_port() -> int:
     with socket.socket() as probe:
         probe.bind(("127.0.0.1", 0))

@@ -20,7 +20,7 @@ from pathlib import Path
 import httpx
 import numpy as np
 import pytest
-from conftest import asgi_scope, free_port, service_process
+from conftest import asgi_scope, free_port, register_head, service_process
 
 from service.batcher import MicroBatcher, RequestTimeoutError
 from service.engine import OnnxEngine
@@ -222,10 +222,7 @@ async def test_a_client_leaving_while_its_batch_runs_leaves_no_stuck_work(serve,
 
 def raw_request(port: int, body: bytes, send_bytes: int, wait_s: float = 0.0) -> None:
     """Send the headers and the first `send_bytes` of the body, optionally wait, then vanish."""
-    head = (
-        f"POST /register HTTP/1.1\r\nHost: 127.0.0.1\r\nContent-Type: application/json\r\n"
-        f"Content-Length: {len(body)}\r\n\r\n"
-    ).encode()
+    head = register_head(body)
     with socket.create_connection(("127.0.0.1", port), timeout=10) as connection:
         connection.sendall(head + body[:send_bytes])
         time.sleep(wait_s)

@@ -28,7 +28,7 @@ from pathlib import Path
 import httpx
 import numpy as np
 import pytest
-from conftest import asgi_scope, service_process
+from conftest import asgi_scope, register_head, service_process
 
 import service
 from service.settings import Settings
@@ -392,10 +392,7 @@ def test_connections_must_send_their_request_head_in_time(tmp_path, tiny_model):
     """uvicorn alone keeps a silent or slowloris connection open forever; the service closes it."""
     head_timeout_s = 1.5
     body = json.dumps({"source": SOURCE.tolist(), "target": TARGET.tolist()}).encode()
-    head = (
-        f"POST /register HTTP/1.1\r\nHost: 127.0.0.1\r\nContent-Type: application/json\r\n"
-        f"Content-Length: {len(body)}\r\n\r\n"
-    ).encode()
+    head = register_head(body)
     with service_process(tmp_path, tiny_model, request_head_timeout_s=str(head_timeout_s)) as (_, url, log):
         address = ("127.0.0.1", httpx.URL(url).port)
 
