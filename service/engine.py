@@ -191,8 +191,7 @@ class OnnxEngine:
         self.concurrent_calls = concurrent_calls
         self.threads = threads or available_cpus()  # of a call that runs alone
         self.threads_beside_others = max(1, self.threads // concurrent_calls)
-        self.session = _open_session(path, self.threads)
-        self._sessions = [self.session]  # [alone, beside others] where the two thread counts differ
+        self._sessions = [_open_session(path, self.threads)]  # [alone, beside others] where the thread counts differ
         if self.threads_beside_others != self.threads:
             self._sessions.append(_open_session(path, self.threads_beside_others))
         self._calls_running = 0
@@ -248,6 +247,11 @@ class OnnxEngine:
             self.threads,
             self.threads_beside_others,
         )
+
+    @property
+    def session(self):
+        """The session of a call that runs alone (all `threads`); every session has its inputs and metadata."""
+        return self._sessions[0]
 
     def run(self, source: np.ndarray, target: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         with self._calls_lock:

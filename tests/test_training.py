@@ -12,6 +12,7 @@ from scipy.spatial import cKDTree  # noqa: E402
 
 from export.onnx_export import DEFAULT_WEIGHTS  # noqa: E402
 from model.geometry import apply_transform, disjoint_halves, matrix_to_euler  # noqa: E402
+from model.training.cli import UserError  # noqa: E402
 from model.training.data import Protocol, RegistrationPairs, load_split, make_pair, synthetic_shape  # noqa: E402
 from model.training.train import main as train_main  # noqa: E402
 
@@ -344,14 +345,21 @@ def test_config_overrides_accept_integer_fields_only():
 
     assert parse_overrides(["edgeconv_k=16", "attention_k=4"]) == {"edgeconv_k": 16, "attention_k": 4}
     for bad in ("edgeconv_k=1.5", "bogus=3", "edgeconv_k"):
-        with pytest.raises(SystemExit, match="FIELD=INT"):
+        with pytest.raises(UserError, match="FIELD=INT"):
             parse_overrides([bad])
 
 
-def test_an_override_below_one_is_a_usage_error_before_any_work(tmp_path):
-    with pytest.raises(SystemExit, match="--override: IFNetConfig.n_iters must be at least 1, got 0"):
-        train_main(["--preset", "fast", "--override", "n_iters=0", "--out", str(tmp_path / "run")])
-    assert not (tmp_path / "run").exists()
+def test_resuming_with_another_config_is_refused_before_any_work(tmp_path, capsys):
+    from model.ifnet import preset
+
+    run = tmp_path / "run"
+    run.mkdir()
+    torch.save({"config": preset("fast").to_dict(), "step": 5}, run / "checkpoint.pt")
+    with pytest.raises(SystemExit) as stopped:
+        train_main(["--preset", "fast", "--override", "edgeconv_k=16", "--out", str(run), "--data-dir", "/nonexistent"])
+    assert stopped.value.code == 2
+    assert "holds a different preset or overrides; use another --out" in capsys.readouterr().err
+    assert sorted(path.name for path in run.iterdir()) == ["checkpoint.pt"]  # no log started, nothing loaded
 
 
 @pytest.mark.parametrize(
@@ -359,12 +367,15 @@ def test_an_override_below_one_is_a_usage_error_before_any_work(tmp_path):
     [
         ("train", ["--batch-size", "0"], "argument --batch-size: must be more than 0, got 0"),
         ("train", ["--device", "gpu"], "--device gpu: not a torch device; use cpu or cuda"),
+        ("train", ["--override", "bogus=3"], "--override 'bogus=3': expected FIELD=INT with FIELD one of"),
+        ("train", ["--override", "n_iters=0"], "--override: IFNetConfig.n_iters must be at least 1, got 0"),
         ("evaluate", ["--model", "/nonexistent/model.onnx"], "--model /nonexistent/model.onnx: no such file"),
         ("evaluate", ["--threads", "-1"], "argument --threads: must be more than 0"),
         ("export", ["--weights", "{junk}"], "not a torch checkpoint or weights file torch can read"),
         ("export", ["--check-pairs", "0"], "argument --check-pairs: must be more than 0"),
         ("ship", [], "give --checkpoint"),
         ("ship", ["--checkpoint", str(DEFAULT_WEIGHTS)], "not a training checkpoint"),
+        ("ship", ["--weights", "{junk}", "--evaluation", "{junk}"], "junk.json does not describe"),
     ],
 )
 def test_command_line_mistakes_end_in_one_line_and_status_2(tmp_path, capsys, command, argv, message):
@@ -374,6 +385,7 @@ def test_command_line_mistakes_end_in_one_line_and_status_2(tmp_path, capsys, co
     module = {"export": "export.__main__"}.get(command, f"model.training.{command}")
     junk = tmp_path / "junk.pt"
     junk.write_bytes(os.urandom(256))
+    junk.with_suffix(".json").write_text(DEFAULT_WEIGHTS.with_suffix(".json").read_text())  # a record of other weights
     argv = [arg.format(junk=junk) for arg in argv]
     if command == "train":
         argv += ["--out", str(tmp_path / "run")]  # never the default runs/ folder
@@ -382,3 +394,4 @@ def test_command_line_mistakes_end_in_one_line_and_status_2(tmp_path, capsys, co
     assert stopped.value.code == 2
     error = capsys.readouterr().err.strip().splitlines()
     assert message in error[-1] and "Traceback" not in "\n".join(error)
+    assert not (tmp_path / "run").exists()  # refused before any work

@@ -120,7 +120,7 @@ def main(argv: list[str] | None = None) -> None:
         raise UserError(f"{record_path} not found: ship a checkpoint first (--checkpoint)")
     record = ship(state, args.checkpoint, args.weights) if state else json.loads(record_path.read_text())
     if record["sha256"] != file_sha256(args.weights):
-        raise SystemExit(f"{record_path} does not describe {args.weights} (checksum differs); ship again")
+        raise UserError(f"{record_path} does not describe {args.weights} (checksum differs); ship again")
     if args.evaluation:
         results = evaluation_results(args.evaluation)
         record["evaluation"] = {

@@ -145,7 +145,7 @@ def parse_overrides(items: list[str]) -> dict[str, int]:
     for item in items:
         field, _, value = item.partition("=")
         if field not in integer_fields or not value.lstrip("-").isdigit():
-            raise SystemExit(f"--override {item!r}: expected FIELD=INT with FIELD one of {integer_fields}")
+            raise UserError(f"--override {item!r}: expected FIELD=INT with FIELD one of {integer_fields}")
         overrides[field] = int(value)
     return overrides
 
@@ -281,13 +281,18 @@ def train(args: argparse.Namespace) -> Path:
     try:
         config: IFNetConfig = preset(args.preset, **parse_overrides(args.override))
     except ValueError as error:
-        raise SystemExit(f"--override: {error}") from None
+        raise UserError(f"--override: {error}") from None
     check_device(args.device)
     if args.threads:
         torch.set_num_threads(args.threads)
     torch.manual_seed(args.seed)
     args.out.mkdir(parents=True, exist_ok=True)
     checkpoint_path, log_path = args.out / "checkpoint.pt", args.out / "log.csv"
+    resumed = None
+    if checkpoint_path.exists():
+        resumed = load_torch_file(checkpoint_path, "checkpoint to resume", weights_only=False)
+    if resumed is not None and IFNetConfig.from_dict(resumed["config"]) != config:
+        raise UserError(f"{checkpoint_path} holds a different preset or overrides; use another --out")
 
     shapes = load_split("train", args.data_dir)
     if args.val_shapes >= len(shapes):
@@ -312,16 +317,13 @@ def train(args: argparse.Namespace) -> Path:
     teacher_blocks = slice(n - 1, None, n) if args.teacher_blocks == "last" else slice(None)
     optimizer = torch.optim.Adam(model.parameters(), lr=args.lr)
     step, seconds_before = 0, 0.0
-    if checkpoint_path.exists():
-        state = load_torch_file(checkpoint_path, "checkpoint to resume", weights_only=False)
-        if IFNetConfig.from_dict(state["config"]) != config:
-            raise SystemExit(f"{checkpoint_path} holds a different preset; use another --out")
-        model.load_state_dict(state["model"])
-        optimizer.load_state_dict(state["optimizer"])
-        step = state["step"]
+    if resumed is not None:
+        model.load_state_dict(resumed["model"])
+        optimizer.load_state_dict(resumed["optimizer"])
+        step = resumed["step"]
         seconds_before = truncate_log(log_path, step)
         print(f"resumed from {checkpoint_path} at step {step}")
-        if changed := changed_options(state.get("args", {}), args):
+        if changed := changed_options(resumed.get("args", {}), args):
             print("options differ from the checkpoint's; training continues with the new ones: " + ", ".join(changed))
     else:
         if args.init_weights:
