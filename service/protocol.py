@@ -1,11 +1,17 @@
-"""uvicorn's HTTP/1.1 protocol (h11) with a deadline on every request head.
+"""uvicorn's HTTP/1.1 protocol (h11) with a deadline and a size limit on every request head.
 
-uvicorn bounds only the idle time between requests (its keep-alive timeout, reset by every byte
-received), so a client that connects and sends nothing, or trickles a request's headers, holds its
-connection open forever (slowloris). The request timeout cannot help: it starts once the app has
-the request, that is once its head is complete. Here a connection that has not completed a request
-head within `head_timeout_s` of opening, or of its previous response, is closed: with a 408 if part
-of a head had arrived, silently if nothing had. A request body is bounded by the request timeout.
+Deadline: uvicorn bounds only the idle time between requests (its keep-alive timeout, reset by
+every byte received), so a client that connects and sends nothing, or trickles a request's
+headers, holds its connection open forever (slowloris). The request timeout cannot help: it starts
+once the app has the request, that is once its head is complete. Here a connection that has not
+completed a request head within `head_timeout_s` of opening, or of its previous response, is
+closed: with a 408 if part of a head had arrived, silently if nothing had. A request body is
+bounded by the request timeout.
+
+Size: h11 refuses a head over its limit (uvicorn's `h11_max_incomplete_event_size`) only while the
+head is incomplete; one that arrives whole in a single read is accepted at any size. Here a head
+longer than `max_head_bytes` gets 431 however it arrives; run uvicorn with the same value as its
+h11 limit so that a head spread over several reads meets the same bound (`python -m service` does).
 """
 
 import asyncio
@@ -16,15 +22,19 @@ from uvicorn.protocols.http.h11_impl import H11Protocol
 
 logger = logging.getLogger("service.protocol")
 
-_TIMEOUT_TEXT = b"request headers not received within the timeout; send the whole head at once\n"
-REQUEST_TIMEOUT_RESPONSE = (
-    b"HTTP/1.1 408 Request Timeout\r\ncontent-type: text/plain; charset=utf-8\r\nconnection: close\r\n"
-    b"content-length: %d\r\n\r\n%s" % (len(_TIMEOUT_TEXT), _TIMEOUT_TEXT)
-)
+DEFAULT_MAX_HEAD_BYTES = 16 * 1024  # h11's and uvicorn's default for an incomplete head
 
 
-class HeadDeadlineProtocol(H11Protocol):
+def _plain_response(status: str, text: bytes) -> bytes:
+    return (
+        b"HTTP/1.1 %s\r\ncontent-type: text/plain; charset=utf-8\r\nconnection: close\r\n"
+        b"content-length: %d\r\n\r\n%s" % (status.encode(), len(text), text)
+    )
+
+
+class RequestHeadProtocol(H11Protocol):
     head_timeout_s: float = 10.0
+    max_head_bytes: int = DEFAULT_MAX_HEAD_BYTES
 
     def connection_made(self, transport: asyncio.Transport) -> None:  # type: ignore[override]
         self._head_deadline: asyncio.TimerHandle | None = None
@@ -35,11 +45,28 @@ class HeadDeadlineProtocol(H11Protocol):
         self._disarm_head_deadline()
         super().connection_lost(exc)
 
+    def data_received(self, data: bytes) -> None:
+        if self.conn.their_state is h11.IDLE and self._head_size(data) > self.max_head_bytes:
+            self._refuse(
+                "431 Request Header Fields Too Large",
+                b"request head larger than %d bytes; send fewer or shorter headers\n" % self.max_head_bytes,
+                f"request head over {self.max_head_bytes} bytes",
+            )
+            return
+        super().data_received(data)
+
     def on_response_complete(self) -> None:
         # Armed before uvicorn goes on to a pipelined request; a head that is complete by the
         # deadline leaves the connection busy, and the deadline then does nothing.
         self._arm_head_deadline()
         super().on_response_complete()
+
+    def _head_size(self, data: bytes) -> int:
+        """Bytes of the head being received, counting only up to max_head_bytes + 1 of it."""
+        buffered, _ = self.conn.trailing_data  # an incomplete head from earlier reads
+        received = buffered + data[: self.max_head_bytes + 4]
+        end = received.find(b"\r\n\r\n", 0, self.max_head_bytes + 4)
+        return end + 4 if end >= 0 else len(received)
 
     def _arm_head_deadline(self) -> None:
         self._disarm_head_deadline()
@@ -55,17 +82,23 @@ class HeadDeadlineProtocol(H11Protocol):
         if self.transport.is_closing() or self.conn.their_state is not h11.IDLE:  # a head has arrived
             return
         partial_head, _ = self.conn.trailing_data
-        if partial_head:
-            logger.warning(
-                "closing a connection from %s: request head incomplete after %g s (%d bytes)",
-                "{}:{}".format(*self.client) if self.client else "?",
-                self.head_timeout_s,
-                len(partial_head),
-            )
-            self.transport.write(REQUEST_TIMEOUT_RESPONSE)
+        if not partial_head:
+            self.transport.close()  # nothing was asked, so nothing to answer
+            return
+        self._refuse(
+            "408 Request Timeout",
+            b"request headers not received within the timeout; send the whole head at once\n",
+            f"request head incomplete after {self.head_timeout_s:g} s ({len(partial_head)} bytes)",
+        )
+
+    def _refuse(self, status: str, text: bytes, reason: str) -> None:
+        client = "{}:{}".format(*self.client) if self.client else "?"
+        logger.warning("closing a connection from %s: %s", client, reason)
+        self.transport.write(_plain_response(status, text))
         self.transport.close()
 
 
-def head_deadline_protocol(head_timeout_s: float) -> type[HeadDeadlineProtocol]:
-    """The protocol class to give uvicorn (`http=`), with this deadline."""
-    return type("HeadDeadlineProtocol", (HeadDeadlineProtocol,), {"head_timeout_s": head_timeout_s})
+def request_head_protocol(head_timeout_s: float, max_head_bytes: int) -> type[RequestHeadProtocol]:
+    """The protocol class to give uvicorn (`http=`), with this deadline and size limit."""
+    limits = {"head_timeout_s": head_timeout_s, "max_head_bytes": max_head_bytes}
+    return type("RequestHeadProtocol", (RequestHeadProtocol,), limits)

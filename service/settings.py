@@ -60,6 +60,12 @@ class Settings(BaseSettings):
         description="Longest time a connection may take to send a request's headers, from opening or from its "
         "previous answer; then it is closed (408 if part of a head arrived). Bounds idle and slowloris connections.",
     )
+    max_head_bytes: int = Field(
+        16 * 1024,
+        ge=1024,
+        le=1024 * 1024,
+        description="Largest request head (request line and headers); larger gets 431.",
+    )
     max_body_bytes: int = Field(64 * 1024 * 1024, ge=1024, description="Largest request body; larger gets 413.")
     min_points: int = Field(32, ge=8, description="Fewest distinct points a cloud must have.")
     max_cloud_points: int = Field(500_000, ge=1, description="Most points one cloud may have.")

@@ -427,3 +427,57 @@ def test_connections_must_send_their_request_head_in_time(tmp_path, tiny_model):
         assert read_until_closed(kept_alive.sock).startswith(b"HTTP/1.1 408 ")
         kept_alive.close()
     assert "request head incomplete" in log.read_text()
+
+
+def with_padding(head: bytes, size: int) -> bytes:
+    """head with one more header whose value is `size` bytes long."""
+    return head.replace(b"\r\n\r\n", b"\r\nX-Padding: " + b"p" * size + b"\r\n\r\n")
+
+
+def test_request_heads_over_the_limit_are_refused_however_they_arrive(tmp_path, tiny_model):
+    """h11 alone bounds a head only while it is incomplete: one that arrives in a single read
+    passes at any size. The service answers 431 both ways, and never counts the body."""
+    limit = 4096
+    cloud = np.random.default_rng(5).normal(size=(1000, 3))
+    body = json.dumps({"source": cloud.tolist(), "target": (cloud + 0.1).tolist()}).encode()
+    assert len(body) > 10 * limit
+    with service_process(tmp_path, tiny_model, max_head_bytes=str(limit)) as (_, url, log):
+        address = ("127.0.0.1", httpx.URL(url).port)
+
+        def answer(data: bytes, piece_bytes: int | None = None) -> bytes:
+            """The server's answer to data sent at once, or in pieces a moment apart."""
+            piece_bytes = piece_bytes or len(data)
+            with socket.create_connection(address, timeout=30) as connection:
+                try:
+                    for start in range(0, len(data), piece_bytes):
+                        connection.sendall(data[start : start + piece_bytes])
+                        time.sleep(0.05 if piece_bytes < len(data) else 0)
+                except OSError:  # closed by the server before all was sent
+                    pass
+                return read_until_closed_or_answered(connection)
+
+        head = register_head(body)
+        assert answer(with_padding(head, limit - 500) + body).startswith(b"HTTP/1.1 200 ")  # with its body, one read
+        for data, piece_bytes in (
+            (with_padding(head, 100_000) + body, None),  # the whole head in one read
+            (with_padding(head, 10_000) + body, 1000),  # over several reads, each under the limit
+            (with_padding(head, limit - len(head) - 12), None),  # one byte over
+        ):
+            refused = answer(data, piece_bytes)
+            assert refused.startswith(b"HTTP/1.1 431 "), refused[:200]
+            assert b"request head larger than 4096 bytes" in refused
+        assert answer(with_padding(head, limit - len(head) - 13) + body).startswith(b"HTTP/1.1 200 ")  # exactly
+    assert "request head over 4096 bytes" in log.read_text()
+
+
+def read_until_closed_or_answered(connection: socket.socket) -> bytes:
+    """An answer that closes the connection, or the first answer on a kept-alive one."""
+    received = b""
+    while chunk := connection.recv(65536):
+        received += chunk
+        head, _, rest = received.partition(b"\r\n\r\n")
+        if rest and b"content-length:" in head.lower():
+            length = int(head.lower().split(b"content-length:")[1].split(b"\r\n")[0])
+            if len(rest) >= length:
+                break
+    return received
