@@ -9,11 +9,13 @@ graph as trained ones. Peak RSS of the process is reported after each run.
 Both runtimes compute the same evaluation-mode model (BatchNorms folded, as exported) and are
 called in turn, round after round, so the machine's drifting speed (bench/machine_check.py)
 reaches both alike; a short pause before each call lets the other runtime's worker threads go
-idle first, since on 2 CPUs one runtime's spinning threads would slow the other's call.
+idle first, since on 2 CPUs one runtime's spinning threads would slow the other's call. The
+speed-up is given as the ratio of the two medians and as the median of each round's ratio; the
+second compares calls made within a second of each other, so it is the one a phase change
+between rounds moves least.
 """
 
 import argparse
-import json
 import resource
 import sys
 import tempfile
@@ -26,6 +28,8 @@ import torch
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
+
+from records import run_header, write_record  # noqa: E402
 
 from export.onnx_export import (  # noqa: E402
     DYNAMIC_AXES,
@@ -40,8 +44,8 @@ from model.ifnet import PRESETS, IFNet, preset  # noqa: E402
 PAUSE_S = 0.05
 
 
-def interleaved_ms(runs: dict[str, Callable[[], object]], repeats: int) -> dict[str, float]:
-    """Median ms per call of each run, the runs called in turn (who goes first rotates)."""
+def interleaved_ms(runs: dict[str, Callable[[], object]], repeats: int) -> dict[str, list[float]]:
+    """ms of every call of each run, one per round, the runs called in turn (who goes first rotates)."""
     names = list(runs)
     for run in runs.values():  # warm-up
         run()
@@ -52,7 +56,13 @@ def interleaved_ms(runs: dict[str, Callable[[], object]], repeats: int) -> dict[
             started = time.perf_counter()
             runs[name]()
             times[name].append(1000 * (time.perf_counter() - started))
-    return {name: float(np.median(t)) for name, t in times.items()}
+    return times
+
+
+def paired_speedups(ort_ms: list[float], eager_ms: list[float]) -> list[float]:
+    """eager / ORT time of each round: the two calls ran back to back, so a change of the
+    machine's speed between rounds (bench/machine_check.py) cancels out of each ratio."""
+    return [eager / ort for ort, eager in zip(ort_ms, eager_ms, strict=True)]
 
 
 def train_step_seconds(model: IFNet, steps: int, n: int) -> float:
@@ -69,7 +79,7 @@ def train_step_seconds(model: IFNet, steps: int, n: int) -> float:
         loss.backward()
         optimizer.step()
 
-    seconds = interleaved_ms({"step": step}, steps)["step"] / 1000
+    seconds = float(np.median(interleaved_ms({"step": step}, steps)["step"])) / 1000
     model.eval()
     return seconds
 
@@ -126,8 +136,10 @@ def main() -> None:
                         s, t = torch.from_numpy(source), torch.from_numpy(target)
                         runs["eager"] = lambda m=eager_model, s=s, t=t: m(s, t)
                     with torch.no_grad():
-                        ms = interleaved_ms(runs, args.repeats)
-                    ort_ms, eager_ms = ms["ort"], ms.get("eager", float("nan"))
+                        times = interleaved_ms(runs, args.repeats)
+                    ort_ms = float(np.median(times["ort"]))
+                    eager_ms = float(np.median(times["eager"])) if "eager" in times else float("nan")
+                    paired = paired_speedups(times["ort"], times["eager"]) if "eager" in times else [float("nan")]
                     row = {
                         "preset": name,
                         "parameters": model.num_parameters(),
@@ -136,6 +148,8 @@ def main() -> None:
                         "ort_ms_per_pair": ort_ms / batch,
                         "eager_ms_per_pair": eager_ms / batch,
                         "speedup": eager_ms / ort_ms,
+                        "speedup_paired": float(np.median(paired)),
+                        "speedup_paired_range": [min(paired), max(paired)],
                         "onnx_mb": size_mb,
                         "export_s": export_seconds,
                         "peak_rss_mb": peak_rss_mb(),
@@ -144,28 +158,30 @@ def main() -> None:
                     rows.append(row)
                     print(
                         f"{name:6s} N={n:5d} B={batch}: ORT {row['ort_ms_per_pair']:7.1f} ms/pair, eager "
-                        f"{row['eager_ms_per_pair']:7.1f} ms/pair ({row['speedup']:.2f}x), peak RSS "
+                        f"{row['eager_ms_per_pair']:7.1f} ms/pair ({row['speedup']:.2f}x; per round "
+                        f"{row['speedup_paired']:.2f}x, {min(paired):.2f}-{max(paired):.2f}x), peak RSS "
                         f"{row['peak_rss_mb']:.0f} MB",
                         flush=True,
                     )
 
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.with_suffix(".json").write_text(json.dumps({"threads": args.threads, "rows": rows}, indent=2))
-    header = (
-        "| preset | params | N | batch | ORT ms/pair | eager ms/pair | ORT speed-up | ONNX MB | export s "
-        "| train step s (batch 4) |"
+    header = run_header()
+    write_record(args.out.with_suffix(".json"), {**header, "threads": args.threads, "rows": rows})
+    table_header = (
+        "| preset | params | N | batch | ORT ms/pair | eager ms/pair | ORT speed-up | per round (range) | ONNX MB "
+        "| export s | train step s (batch 4) |"
     )
     lines = [
-        f"Command: `python bench/{Path(__file__).name} {' '.join(sys.argv[1:])}` ({args.threads} threads, "
-        f"median of {args.repeats})",
+        f"Command: `{header['command']}` ({header['when']}, {args.threads} threads, median of {args.repeats})",
         "",
-        header,
-        "|---" * 10 + "|",
+        table_header,
+        "|---" * 11 + "|",
     ]
     for r in rows:
         lines.append(
             f"| {r['preset']} | {r['parameters']:,} | {r['points']} | {r['batch']} | {r['ort_ms_per_pair']:.1f}"
-            f" | {r['eager_ms_per_pair']:.1f} | {r['speedup']:.2f}x | {r['onnx_mb']:.2f} | {r['export_s']:.1f}"
+            f" | {r['eager_ms_per_pair']:.1f} | {r['speedup']:.2f}x | {r['speedup_paired']:.2f}x "
+            f"({r['speedup_paired_range'][0]:.2f}-{r['speedup_paired_range'][1]:.2f}x)"
+            f" | {r['onnx_mb']:.2f} | {r['export_s']:.1f}"
             f" | {r['train_step_s']:.2f} |"
         )
     args.out.with_suffix(".md").write_text("\n".join(lines) + "\n")
