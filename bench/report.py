@@ -623,6 +623,11 @@ RELIABILITY = [
         "streamed body is cut at the limit before any parser runs; `tests/test_service_api.py` (413 statuses)",
     ),
     (
+        "Request heads bounded too: a deadline (408) and a size limit (431)",
+        "`tests/test_reliability_security.py`: on a real process, silent and slowloris connections closed, a head "
+        "over the limit refused whether it arrives in one read or several, a large body never counted",
+    ),
+    (
         "Optional API key, constant-time compare, 401",
         "`tests/test_reliability_security.py`: every key goes through `secrets.compare_digest`, no `==` on the "
         "secret in `service/`, /register answers 401 before reading the body; "
