@@ -19,7 +19,7 @@ from service.batcher import InferenceError, MicroBatcher, QueueFullError, Reques
 from service.engine import Engine, OnnxEngine
 from service.formats import UnsupportedFormat
 from service.metrics import HttpMetricsMiddleware
-from service.middleware import BodyLimitMiddleware
+from service.middleware import BodyLimitMiddleware, ContentEncodingMiddleware
 from service.oip import router as oip_router
 from service.registration import InvalidInput, RegistrationFailed
 from service.routes import router
@@ -203,7 +203,9 @@ def create_app(settings: Settings | None = None, engine: Engine | None = None) -
     app.include_router(oip_router)
     _install_error_handlers(app)
     _install_openapi(app)
-    # Outermost last: metrics see every answer, including the body limit's 413.
+    # Outermost last: metrics see every answer, including the body limit's 413; the limit counts the
+    # bytes on the wire, the inflater (inside it) the bytes a compressed body expands to.
+    app.add_middleware(ContentEncodingMiddleware, max_bytes=settings.max_body_bytes)
     app.add_middleware(BodyLimitMiddleware, max_bytes=settings.max_body_bytes)
     static_routes = {route.path for route in (*router.routes, *oip_router.routes) if "{" not in route.path}
     app.add_middleware(

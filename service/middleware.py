@@ -1,6 +1,7 @@
-"""Request body size limit, enforced before and while the body arrives."""
+"""Request bodies as they arrive: the size limit (before and while reading) and compressed bodies."""
 
 import json
+import zlib
 
 from fastapi import HTTPException
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
@@ -69,3 +70,96 @@ class BodyLimitMiddleware:
             }
         )
         await send({"type": "http.response.body", "body": body})
+
+
+# Content-Encoding -> zlib's wbits: gzip's header and trailer, or the zlib wrapper HTTP's deflate means.
+INFLATABLE = {"gzip": 16 + zlib.MAX_WBITS, "x-gzip": 16 + zlib.MAX_WBITS, "deflate": zlib.MAX_WBITS}
+
+
+class ContentEncodingMiddleware:
+    """Inflates request bodies sent with `Content-Encoding: gzip` or `deflate` as they arrive.
+
+    The app sees the plain body (without the encoding and length headers). The inflated size is
+    held to `max_bytes` chunk by chunk, so a small body that inflates hugely (a zip bomb) is
+    refused with 413 without ever being expanded in memory. Other encodings get 415 and bad
+    compressed data 400, raised when the body is first read, so that a missing API key still gets
+    its 401 first. Runs inside BodyLimitMiddleware, which limits the bytes on the wire.
+    """
+
+    def __init__(self, app: ASGIApp, max_bytes: int):
+        self.app = app
+        self.max_bytes = max_bytes
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        headers = scope.get("headers") or []
+        encoding = next((value for name, value in headers if name == b"content-encoding"), None)
+        if scope["type"] != "http" or encoding is None:
+            await self.app(scope, receive, send)
+            return
+        name = encoding.decode("latin-1").strip().lower()
+        plain = [(key, value) for key, value in headers if key not in (b"content-encoding", b"content-length")]
+        scope = {**scope, "headers": plain}
+        if name != "identity":
+            receive = _inflating(receive, name, self.max_bytes)
+        await self.app(scope, receive, send)
+
+
+def _inflating(receive: Receive, encoding: str, max_bytes: int) -> Receive:
+    if encoding not in INFLATABLE:
+        supported = ", ".join(sorted(INFLATABLE))
+
+        async def refuse() -> Message:
+            await _drain(receive, await receive())
+            raise HTTPException(
+                415, f"content-encoding: {encoding!r} is not supported; send the body plain or as {supported}"
+            )
+
+        return refuse
+
+    inflater = zlib.decompressobj(INFLATABLE[encoding])
+    room = max_bytes  # inflated bytes still allowed
+
+    def inflate(data: bytes) -> bytes:
+        nonlocal room
+        pieces = []
+        while data:
+            try:
+                piece = inflater.decompress(data, room + 1)  # never more than one byte over the limit
+            except zlib.error as error:
+                raise HTTPException(400, f"body: not valid {encoding} data ({error})") from None
+            room -= len(piece)
+            if room < 0:
+                raise HTTPException(
+                    413,
+                    f"body: the request body inflates to more than the limit of {max_bytes} bytes; send fewer points",
+                )
+            pieces.append(piece)
+            data = inflater.unconsumed_tail
+        return b"".join(pieces)
+
+    async def inflating_receive() -> Message:
+        message = await receive()
+        if message["type"] != "http.request":
+            return message
+        try:
+            body = inflate(message.get("body", b""))
+        except HTTPException as error:
+            if error.status_code == 400:  # read the rest, so that the client gets to read the answer
+                await _drain(receive, message)
+            raise
+        if not message.get("more_body", False) and (not inflater.eof or inflater.unused_data):
+            problem = "ends before its end" if not inflater.eof else "has data after its end"
+            raise HTTPException(400, f"body: the {encoding} stream {problem}; send the whole body, compressed once")
+        return {**message, "body": body}
+
+    return inflating_receive
+
+
+async def _drain(receive: Receive, message: Message) -> None:
+    """Read and drop the rest of a body from `message` on (the size limit outside still applies).
+
+    A server that answers and closes while the client is still sending makes most clients see a
+    reset connection instead of the answer; reading to the end lets them read it.
+    """
+    while message["type"] == "http.request" and message.get("more_body", False):
+        message = await receive()

@@ -1,10 +1,12 @@
 """The HTTP API in-process (httpx against the ASGI app), with a tiny ONNX model standing in for IFNet."""
 
 import asyncio
+import gzip
 import io
 import json
 import math
 import re
+import zlib
 
 import numpy as np
 import pytest
@@ -218,6 +220,126 @@ async def test_bodies_over_the_limit_get_413(serve, tiny_model):
     for response in (v2_declared, v2_streamed):  # in the v2 error shape
         assert response.status_code == 413 and set(response.json()) == {"error"}, response.text
         assert "larger than the limit of 50000 bytes" in response.json()["error"]
+
+
+COMPRESS = {"gzip": gzip.compress, "x-gzip": gzip.compress, "deflate": zlib.compress, "identity": bytes}
+
+
+@pytest.mark.parametrize("encoding", sorted(COMPRESS))
+async def test_compressed_bodies_are_inflated(serve, tiny_model, encoding):
+    compress = COMPRESS[encoding]
+    payload = json.dumps(body()).encode()
+    async with serve(settings_for(tiny_model)) as (app, client):
+        expected = (await client.post("/register", content=payload, headers=JSON_HEADERS)).json()
+        as_json = await client.post(
+            "/register", content=compress(payload), headers={**JSON_HEADERS, "content-encoding": encoding.upper()}
+        )
+        as_npy = await client.post(
+            "/register",
+            content=compress(npy_file(np.stack([SOURCE, TARGET]))),
+            headers={"content-type": "application/x-npy", "content-encoding": encoding},
+        )
+        upload = client.build_request(
+            "POST", "/register", files={"source": ("s.ply", ply_file(SOURCE)), "target": ("t.ply", ply_file(TARGET))}
+        )
+        as_upload = await client.post(
+            "/register",
+            content=compress(upload.read()),
+            headers={"content-type": upload.headers["content-type"], "content-encoding": encoding},
+        )
+    for response in (as_json, as_npy, as_upload):
+        assert response.status_code == 200, response.text
+        np.testing.assert_allclose(response.json()["transform"], expected["transform"], atol=1e-9)
+
+
+async def test_compressed_body_errors_name_the_problem(serve, tiny_model):
+    payload = json.dumps(body()).encode()
+    packed = gzip.compress(payload)
+    bomb = gzip.compress(b" " * 5_000_000)  # JSON whitespace, 25x the body limit, in a body of a few KB
+    assert len(bomb) < 20_000
+    cases = [
+        ("br", payload, 415, "content-encoding: 'br' is not supported; send the body plain or as deflate, gzip"),
+        ("gzip, gzip", packed, 415, "content-encoding: 'gzip, gzip' is not supported"),
+        ("gzip", payload, 400, "body: not valid gzip data"),
+        ("deflate", packed, 400, "body: not valid deflate data"),
+        ("gzip", packed[:-12], 400, "body: the gzip stream ends before its end"),
+        ("gzip", packed + b"trailing", 400, "body: the gzip stream has data after its end"),
+        ("gzip", bomb, 413, "body: the request body inflates to more than the limit of 200000 bytes"),
+    ]
+    async with serve(settings_for(tiny_model)) as (app, client):
+        answers = [
+            await client.post("/register", content=data, headers={**JSON_HEADERS, "content-encoding": encoding})
+            for encoding, data, _, _ in cases
+        ]
+        v2 = await client.post("/v2/models/ifnet/infer", content=bomb, headers={"content-encoding": "gzip"})
+        healthy = await client.post("/register", json=body())
+    for (_, _, status, message), answer in zip(cases, answers, strict=True):
+        assert answer.status_code == status and answer.json()["detail"].startswith(message), answer.text
+        assert answer.json()["errors"][0]["field"] in ("body", "content-encoding")
+    assert v2.status_code == 413 and "inflates to more than the limit" in v2.json()["error"]
+    assert healthy.status_code == 200
+    async with serve(settings_for(tiny_model, api_key="s3cret")) as (app, client):
+        unknown_key = await client.post(
+            "/register", content=payload, headers={**JSON_HEADERS, "content-encoding": "br"}
+        )
+    assert unknown_key.status_code == 401  # the key is checked before the body is read
+
+
+def test_a_compressed_body_is_never_inflated_beyond_the_limit():
+    """A 100 MB bomb against a 1 MB limit: refused after at most the limit's worth of output."""
+    import tracemalloc
+
+    from fastapi import HTTPException
+
+    from service.middleware import ContentEncodingMiddleware
+
+    packer = zlib.compressobj(wbits=16 + zlib.MAX_WBITS)
+    bomb = b"".join(packer.compress(bytes(1 << 20)) for _ in range(100)) + packer.flush()
+    chunks = [bomb[start : start + 4096] for start in range(0, len(bomb), 4096)]
+    seen = {}
+
+    async def app(scope, receive, send):
+        seen["headers"] = dict(scope["headers"])
+        while (await receive()).get("more_body"):
+            pass
+
+    async def receive():
+        chunk = chunks.pop(0)
+        return {"type": "http.request", "body": chunk, "more_body": bool(chunks)}
+
+    middleware = ContentEncodingMiddleware(app, max_bytes=1 << 20)
+    scope = {"type": "http", "headers": [(b"content-encoding", b"gzip"), (b"content-length", b"%d" % len(bomb))]}
+    tracemalloc.start()
+    with pytest.raises(HTTPException) as refused:
+        asyncio.run(middleware(scope, receive, None))
+    peak = tracemalloc.get_traced_memory()[1]
+    tracemalloc.stop()
+    assert refused.value.status_code == 413
+    assert peak < 4 << 20, f"{peak / 1e6:.1f} MB held while inflating"
+    assert seen["headers"] == {}  # the app sees neither the encoding nor the compressed length
+    assert chunks  # reading stopped at the limit, long before the end of the body
+
+
+@pytest.mark.parametrize(("encoding", "status"), [("br", 415), ("gzip", 400)])
+def test_a_refused_compressed_body_is_read_to_its_end(encoding, status):
+    """Answering while the client still sends makes most clients see a reset, not the answer."""
+    from fastapi import HTTPException
+
+    from service.middleware import ContentEncodingMiddleware
+
+    chunks = [b"not compressed at all " * 100] * 50
+
+    async def receive():
+        return {"type": "http.request", "body": chunks.pop(0), "more_body": len(chunks) > 0}
+
+    async def app(scope, receive, send):
+        await receive()  # the first read is refused
+
+    middleware = ContentEncodingMiddleware(app, max_bytes=1 << 20)
+    with pytest.raises(HTTPException) as refused:
+        asyncio.run(middleware({"type": "http", "headers": [(b"content-encoding", encoding.encode())]}, receive, None))
+    assert refused.value.status_code == status
+    assert chunks == []
 
 
 @pytest.mark.parametrize("content_type", ["text/plain", "application/xml", None])
