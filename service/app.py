@@ -19,7 +19,7 @@ from service.batcher import InferenceError, MicroBatcher, QueueFullError, Reques
 from service.engine import Engine, OnnxEngine
 from service.formats import UnsupportedFormat
 from service.metrics import HttpMetricsMiddleware
-from service.middleware import BodyLimitMiddleware, ContentEncodingMiddleware
+from service.middleware import BodyLimitMiddleware, ContentEncodingMiddleware, RequestIdMiddleware, request_id
 from service.oip import router as oip_router
 from service.registration import InvalidInput, RegistrationFailed
 from service.routes import router
@@ -163,7 +163,11 @@ def _install_error_handlers(app: FastAPI) -> None:
     # the server logs its traceback as usual.
     @app.exception_handler(Exception)
     async def on_unexpected(request: Request, error: Exception) -> JSONResponse:
-        return _error(request, 500, "internal error; the server log has the details")
+        # Answered outside the middleware stack, so the id header is added here.
+        identifier = request_id(request.scope)
+        logger.error("request %s (%s %s) failed: %r", identifier, request.method, request.url.path, error)
+        detail = f"internal error; the server log has the details under request id {identifier}"
+        return _error(request, 500, detail, headers={"X-Request-ID": identifier} if identifier else None)
 
     # Starlette's class, not FastAPI's subclass: FastAPI and Starlette raise the base class themselves
     # (404, 405, unparseable bodies), and those answers must have the same shape as every other error.
@@ -215,4 +219,5 @@ def create_app(settings: Settings | None = None, engine: Engine | None = None) -
         windowed_routes={"/register"},
         static_routes=static_routes,
     )
+    app.add_middleware(RequestIdMiddleware)  # every answer but an unforeseen error's 500 (its handler adds the id)
     return app

@@ -19,12 +19,14 @@ DEFAULT_URL = "http://127.0.0.1:8000"
 
 
 class RegistrationError(Exception):
-    """The service answered with an error; `status` is the HTTP code, `detail` its explanation."""
+    """The service answered with an error; `status` is the HTTP code, `detail` its explanation and
+    `request_id` the id under which the service logged the request (quote it when reporting a 5xx)."""
 
-    def __init__(self, status: int, detail: str):
-        super().__init__(f"HTTP {status}: {detail}")
+    def __init__(self, status: int, detail: str, request_id: str | None = None):
+        super().__init__(f"HTTP {status}: {detail}" + (f" (request id {request_id})" if request_id else ""))
         self.status = status
         self.detail = detail
+        self.request_id = request_id
 
 
 def _options(
@@ -97,7 +99,7 @@ class RegistrationClient:
             detail = response.json().get("detail") or response.text
         except ValueError:
             detail = response.text
-        raise RegistrationError(response.status_code, str(detail))
+        raise RegistrationError(response.status_code, str(detail), response.headers.get("x-request-id"))
 
 
 def _load_matrix(path: str) -> np.ndarray:

@@ -1,10 +1,48 @@
-"""Request bodies as they arrive: the size limit (before and while reading) and compressed bodies."""
+"""ASGI middleware: request ids, the body size limit (before and while reading), compressed bodies."""
 
 import json
+import re
+import uuid
 import zlib
 
 from fastapi import HTTPException
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
+
+# A client's own id is kept only if it is a plain token, so that it cannot forge log lines or headers.
+CLIENT_REQUEST_ID = re.compile(r"[A-Za-z0-9._:-]{1,128}")
+
+
+class RequestIdMiddleware:
+    """Gives every request an id, in `request.state.request_id` and in the answer's `X-Request-ID`.
+
+    The id is the client's `X-Request-ID` when that is a plain token (letters, digits, `._:-`, at
+    most 128), else a new random one; a 500 names it, and the log line about that failure has it,
+    so that a failed request a user reports can be found in the log.
+    """
+
+    def __init__(self, app: ASGIApp):
+        self.app = app
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if scope["type"] != "http":
+            await self.app(scope, receive, send)
+            return
+        given = dict(scope.get("headers") or []).get(b"x-request-id", b"").decode("latin-1")
+        request_id = given if CLIENT_REQUEST_ID.fullmatch(given) else uuid.uuid4().hex
+        scope.setdefault("state", {})["request_id"] = request_id  # shared with every copy of the scope
+        header = (b"x-request-id", request_id.encode())
+
+        async def send_with_id(message: Message) -> None:
+            if message["type"] == "http.response.start":
+                message = {**message, "headers": [*message.get("headers", []), header]}
+            await send(message)
+
+        await self.app(scope, receive, send_with_id)
+
+
+def request_id(scope: Scope) -> str | None:
+    """The id RequestIdMiddleware gave this request (None outside it)."""
+    return (scope.get("state") or {}).get("request_id")
 
 
 class BodyTooLarge(HTTPException):

@@ -466,7 +466,7 @@ async def test_raw_npy_and_npz_bodies(serve, tiny_model):
     assert options_twice.status_code == 422 and options_twice.json()["detail"].startswith("options:")
 
 
-async def test_an_unforeseen_error_is_still_a_json_answer(tiny_model, monkeypatch):
+async def test_an_unforeseen_error_is_still_a_json_answer(tiny_model, monkeypatch, caplog):
     """A bug past the input checks answers 500 in the route's error shape; the traceback goes to the log."""
     import httpx
 
@@ -484,7 +484,35 @@ async def test_an_unforeseen_error_is_still_a_json_answer(tiny_model, monkeypatc
         async with httpx.AsyncClient(transport=transport, base_url="http://testserver") as client:
             response = await client.post("/register", json=body())
     assert response.status_code == 500
-    assert response.json() == {"detail": "internal error; the server log has the details", "errors": []}
+    identifier = response.headers["x-request-id"]
+    assert response.json() == {
+        "detail": f"internal error; the server log has the details under request id {identifier}",
+        "errors": [],
+    }
+    assert f"request {identifier} (POST /register) failed: RuntimeError('a bug')" in caplog.text
+
+
+async def test_every_answer_carries_a_request_id(serve, tiny_model):
+    """The client's id when it is a plain token, else a new one: in the header of every answer."""
+    async with serve(settings_for(tiny_model)) as (app, client):
+        answers = [
+            await client.post("/register", json=body()),  # 200
+            await client.post("/register", json={"source": []}),  # 422
+            await client.post("/register", content=b"x" * 300_000, headers=JSON_HEADERS),  # 413 before routing
+            await client.get("/nowhere"),  # 404
+            await client.get("/health"),
+            await client.post("/v2/models/ifnet/infer", json={"inputs": []}),
+        ]
+        kept = await client.get("/health", headers={"X-Request-ID": "trace-01.a:b_c"})
+        replaced = [
+            await client.get("/health", headers={"X-Request-ID": given})
+            for given in ("has space", "x" * 129, "semi;colon", "")
+        ]
+    assert [answer.status_code for answer in answers] == [200, 422, 413, 404, 200, 422]
+    generated = [answer.headers["x-request-id"] for answer in answers + replaced]
+    assert all(re.fullmatch(r"[0-9a-f]{32}", value) for value in generated), generated
+    assert len(set(generated)) == len(generated)
+    assert kept.headers["x-request-id"] == "trace-01.a:b_c"
 
 
 async def test_api_key(serve, tiny_model):

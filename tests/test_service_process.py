@@ -3,6 +3,7 @@ client against it, graceful shutdown on SIGTERM, and a clear failure without a m
 
 import json
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -65,6 +66,7 @@ def test_server_and_command_line_client(tmp_path, tiny_model):
     aligned = read_cloud_file(tmp_path / "aligned.ply")
     np.testing.assert_allclose(aligned, source @ transform[:3, :3].T + transform[:3, 3], atol=1e-5)
     assert refused.returncode == 1 and "HTTP 415" in refused.stderr
+    assert re.search(r"\(request id [0-9a-f]{32}\)$", refused.stderr.strip())  # to quote in a report
     np.testing.assert_allclose(from_arrays["transform"][3], [0, 0, 0, 1])
 
 
