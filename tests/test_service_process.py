@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 from conftest import free_port, service_process
 
-from service.client import RegistrationClient
+from service.client import RegistrationClient, RegistrationError
 from service.formats import read_cloud_file, write_ply
 
 REPO = Path(__file__).resolve().parents[1]
@@ -52,8 +52,14 @@ def test_server_and_command_line_client(tmp_path, tiny_model):
         )
         refused = run_client(str(tmp_path / "notes.txt"), str(tmp_path / "target.npy"), "--url", url)
         with RegistrationClient(url) as client:
-            from_arrays = client.register(source, target, seed=0)
+            from_arrays = client.register(source, target.astype(np.float32), seed=0, refine=True)
             assert client.ready()
+            with pytest.raises(RegistrationError, match=r"HTTP 422: source: .*\(request id [0-9a-f]{32}\)"):
+                client.register(source[:, :2], target)
+        posted_json = httpx.post(
+            f"{url}/register",
+            json={"source": source.tolist(), "target": target.astype(np.float32).tolist(), "seed": 0, "refine": True},
+        ).json()
 
     assert printed.returncode == 0, printed.stderr
     lines = printed.stdout.splitlines()
@@ -67,7 +73,8 @@ def test_server_and_command_line_client(tmp_path, tiny_model):
     np.testing.assert_allclose(aligned, source @ transform[:3, :3].T + transform[:3, 3], atol=1e-5)
     assert refused.returncode == 1 and "HTTP 415" in refused.stderr
     assert re.search(r"\(request id [0-9a-f]{32}\)$", refused.stderr.strip())  # to quote in a report
-    np.testing.assert_allclose(from_arrays["transform"][3], [0, 0, 0, 1])
+    np.testing.assert_allclose(from_arrays["transform"], posted_json["transform"], atol=1e-9)  # the same request
+    assert from_arrays["refinement"]["iterations"] >= 1  # the options arrived
 
 
 def test_the_command_line_client_names_what_went_wrong(tmp_path):
