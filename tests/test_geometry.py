@@ -8,6 +8,7 @@ from model.geometry import (
     fitness_and_rmse,
     nearest_rotation,
     registration_errors,
+    remove_duplicates,
     rotation_angle_deg,
     summarise_errors,
 )
@@ -68,3 +69,19 @@ def test_nearest_rotation_is_proper_and_removes_only_drift():
         np.testing.assert_allclose(proper @ proper.T, np.eye(3), atol=1e-12)
         assert np.linalg.det(proper) == pytest.approx(1.0)
     assert rotation_angle_deg(nearest_rotation(rotation), rotation) < 1e-6
+
+
+def test_remove_duplicates_keeps_first_occurrences_in_order():
+    rng = np.random.default_rng(4)
+    points = rng.normal(size=(2000, 3))
+    points[::7, 2] = 0.0  # ties in one coordinate must not hide a difference in another
+    copies = rng.integers(0, 2000, 500)
+    shuffled = np.concatenate([points, points[copies]])[rng.permutation(2500)]
+    shuffled[[10, 20]] = [[0.0, -0.0, 1.0], [-0.0, 0.0, 1.0]]  # equal as numbers: one point
+    kept = remove_duplicates(shuffled)
+
+    _, first = np.unique(shuffled, axis=0, return_index=True)  # the reference: numpy's row-wise unique
+    np.testing.assert_array_equal(kept, shuffled[np.sort(first)])
+    assert len(kept) == len(np.unique(kept, axis=0))
+    (zero_row,) = kept[(kept == [0.0, 0.0, 1.0]).all(axis=1)]
+    assert list(np.signbit(zero_row)) == [False, True, False]  # the first of the two, as it was sent
