@@ -41,6 +41,7 @@ class ServiceState:
         self.warmup_error: str | None = None
         self.accepting = True  # False once shutdown has begun
         self.in_flight = 0  # registration requests admitted and not yet answered (see dependencies.admit)
+        self.large_json_parse = asyncio.Lock()  # see uploads.parse_json
 
     @property
     def model(self) -> ModelInfo:

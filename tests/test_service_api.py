@@ -342,6 +342,48 @@ def test_a_refused_compressed_body_is_read_to_its_end(encoding, status):
     assert chunks == []
 
 
+async def test_large_json_bodies_are_parsed_one_at_a_time(serve, tiny_model, monkeypatch):
+    """Parallel parses of big bodies only contend for the GIL and hold their objects meanwhile;
+    small bodies are never held up behind them."""
+    import threading
+    import time
+
+    from service import schemas
+    from service.uploads import LARGE_JSON_BYTES
+
+    running, most = {"large": 0, "all": 0}, {"large": 0, "all": 0}
+    guard = threading.Lock()
+    original = schemas.RegisterRequest.model_validate_json
+
+    def counted(data, *args, **kwargs):
+        kinds = ("all", "large") if len(data) > LARGE_JSON_BYTES else ("all",)
+        with guard:
+            for kind in kinds:
+                running[kind] += 1
+                most[kind] = max(most[kind], running[kind])
+        try:
+            time.sleep(0.3 if "large" in kinds else 0.05)  # long enough for the others to arrive
+            return original(data, *args, **kwargs)
+        finally:
+            with guard:
+                for kind in kinds:
+                    running[kind] -= 1
+
+    monkeypatch.setattr(schemas.RegisterRequest, "model_validate_json", counted)
+    small = json.dumps(body()).encode()
+    large = small + b" " * LARGE_JSON_BYTES  # JSON allows trailing whitespace
+    async with serve(settings_for(tiny_model, max_body_bytes=4 * LARGE_JSON_BYTES)) as (app, client):
+
+        async def post(data: bytes, after_s: float = 0.0):
+            await asyncio.sleep(after_s)
+            return await client.post("/register", content=data, headers=JSON_HEADERS)
+
+        # The small body arrives while the first large one is being parsed and two more wait.
+        answers = await asyncio.gather(post(large), post(large), post(large), post(small, after_s=0.1))
+    assert [answer.status_code for answer in answers] == [200, 200, 200, 200]
+    assert most == {"large": 1, "all": 2}  # one large parse at a time, with the small one beside it
+
+
 @pytest.mark.parametrize("content_type", ["text/plain", "application/xml", None])
 async def test_wrong_content_type_gets_415(serve, tiny_model, content_type):
     headers = {"content-type": content_type} if content_type else {}
