@@ -51,7 +51,7 @@ def main(argv: list[str] | None = None) -> int:
     import uvicorn
 
     from service.app import create_app
-    from service.protocol import request_head_protocol
+    from service.protocol import service_protocol
 
     uvicorn.run(
         create_app(settings, engine=engine),
@@ -59,7 +59,7 @@ def main(argv: list[str] | None = None) -> int:
         port=settings.port,
         log_level=settings.log_level,
         timeout_graceful_shutdown=math.ceil(settings.shutdown_timeout_s),  # uvicorn takes whole seconds
-        http=request_head_protocol(settings.request_head_timeout_s, settings.max_head_bytes),
+        http=service_protocol(settings.request_head_timeout_s, settings.max_head_bytes, settings.max_body_bytes),
         h11_max_incomplete_event_size=settings.max_head_bytes,  # the same bound for a head over several reads
     )
     return 0

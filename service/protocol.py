@@ -1,17 +1,25 @@
-"""uvicorn's HTTP/1.1 protocol (h11) with a deadline and a size limit on every request head.
+"""uvicorn's HTTP/1.1 protocol (h11) with three guards for the service's connections.
 
-Deadline: uvicorn bounds only the idle time between requests (its keep-alive timeout, reset by
-every byte received), so a client that connects and sends nothing, or trickles a request's
+Head deadline: uvicorn bounds only the idle time between requests (its keep-alive timeout, reset
+by every byte received), so a client that connects and sends nothing, or trickles a request's
 headers, holds its connection open forever (slowloris). The request timeout cannot help: it starts
 once the app has the request, that is once its head is complete. Here a connection that has not
 completed a request head within `head_timeout_s` of opening, or of its previous response, is
 closed: with a 408 if part of a head had arrived, silently if nothing had. A request body is
 bounded by the request timeout.
 
-Size: h11 refuses a head over its limit (uvicorn's `h11_max_incomplete_event_size`) only while the
-head is incomplete; one that arrives whole in a single read is accepted at any size. Here a head
-longer than `max_head_bytes` gets 431 however it arrives; run uvicorn with the same value as its
-h11 limit so that a head spread over several reads meets the same bound (`python -m service` does).
+Head size: h11 refuses a head over its limit (uvicorn's `h11_max_incomplete_event_size`) only
+while the head is incomplete; one that arrives whole in a single read is accepted at any size.
+Here a head longer than `max_head_bytes` gets 431 however it arrives; run uvicorn with the same
+value as its h11 limit so that a head spread over several reads meets the same bound
+(`python -m service` does).
+
+Lingering close: the service answers some requests before reading their body (401, 413 on the
+declared length, 429). When such a connection must close (the client sent `Connection: close`),
+uvicorn closes it at once, and the kernel answers the body still arriving with a reset, which
+most clients report instead of the answer (seen with Python's urllib and a 6 MB body). Here the
+connection first shuts its sending side and reads and drops up to `max_drain_bytes` more for at
+most `drain_timeout_s`, as nginx's lingering close does, so that the client reads the answer.
 """
 
 import asyncio
@@ -32,13 +40,35 @@ def _plain_response(status: str, text: bytes) -> bytes:
     )
 
 
-class RequestHeadProtocol(H11Protocol):
+class _LingeringTransport:
+    """The connection's transport as uvicorn sees it: close() lets the protocol drain first."""
+
+    def __init__(self, transport: asyncio.Transport, protocol: "ServiceProtocol"):
+        self._transport = transport
+        self._protocol = protocol
+
+    def close(self) -> None:
+        self._protocol._close_when_drained()
+
+    def is_closing(self) -> bool:
+        return self._protocol._draining or self._transport.is_closing()
+
+    def __getattr__(self, name: str):
+        return getattr(self._transport, name)
+
+
+class ServiceProtocol(H11Protocol):
     head_timeout_s: float = 10.0
     max_head_bytes: int = DEFAULT_MAX_HEAD_BYTES
+    max_drain_bytes: int = 64 * 1024 * 1024
+    drain_timeout_s: float = 10.0
 
     def connection_made(self, transport: asyncio.Transport) -> None:  # type: ignore[override]
         self._head_deadline: asyncio.TimerHandle | None = None
-        super().connection_made(transport)
+        self._socket = transport
+        self._draining = False
+        self._drained = 0
+        super().connection_made(_LingeringTransport(transport, self))  # type: ignore[arg-type]
         self._arm_head_deadline()
 
     def connection_lost(self, exc: Exception | None) -> None:
@@ -46,6 +76,11 @@ class RequestHeadProtocol(H11Protocol):
         super().connection_lost(exc)
 
     def data_received(self, data: bytes) -> None:
+        if self._draining:  # the rest of a body nobody will read
+            self._drained += len(data)
+            if self._drained > self.max_drain_bytes:
+                self._socket.close()
+            return
         if self.conn.their_state is h11.IDLE and self._head_size(data) > self.max_head_bytes:
             self._refuse(
                 "431 Request Header Fields Too Large",
@@ -55,11 +90,29 @@ class RequestHeadProtocol(H11Protocol):
             return
         super().data_received(data)
 
+    def eof_received(self) -> bool | None:
+        if self._draining:  # the client has sent everything and read the answer
+            self._socket.close()
+        return None  # asyncio closes the transport
+
     def on_response_complete(self) -> None:
         # Armed before uvicorn goes on to a pipelined request; a head that is complete by the
         # deadline leaves the connection busy, and the deadline then does nothing.
         self._arm_head_deadline()
         super().on_response_complete()
+
+    def _close_when_drained(self) -> None:
+        """Close now, or, while the client is still sending a request body, once it has stopped."""
+        if self._draining or self._socket.is_closing():
+            return
+        if self.conn.their_state is not h11.SEND_BODY or not self._socket.can_write_eof():
+            self._socket.close()
+            return
+        self._draining = True
+        self._disarm_head_deadline()
+        self._socket.write_eof()  # the answer goes out, then our side of the connection ends
+        self._socket.resume_reading()  # uvicorn pauses reading while a body waits for the app
+        self.loop.call_later(self.drain_timeout_s, self._socket.close)
 
     def _head_size(self, data: bytes) -> int:
         """Bytes of the head being received, counting only up to max_head_bytes + 1 of it."""
@@ -83,7 +136,7 @@ class RequestHeadProtocol(H11Protocol):
             return
         partial_head, _ = self.conn.trailing_data
         if not partial_head:
-            self.transport.close()  # nothing was asked, so nothing to answer
+            self._socket.close()  # nothing was asked, so nothing to answer
             return
         self._refuse(
             "408 Request Timeout",
@@ -94,11 +147,11 @@ class RequestHeadProtocol(H11Protocol):
     def _refuse(self, status: str, text: bytes, reason: str) -> None:
         client = "{}:{}".format(*self.client) if self.client else "?"
         logger.warning("closing a connection from %s: %s", client, reason)
-        self.transport.write(_plain_response(status, text))
-        self.transport.close()
+        self._socket.write(_plain_response(status, text))
+        self._socket.close()
 
 
-def request_head_protocol(head_timeout_s: float, max_head_bytes: int) -> type[RequestHeadProtocol]:
-    """The protocol class to give uvicorn (`http=`), with this deadline and size limit."""
-    limits = {"head_timeout_s": head_timeout_s, "max_head_bytes": max_head_bytes}
-    return type("RequestHeadProtocol", (RequestHeadProtocol,), limits)
+def service_protocol(head_timeout_s: float, max_head_bytes: int, max_drain_bytes: int) -> type[ServiceProtocol]:
+    """The protocol class to give uvicorn (`http=`), with these limits."""
+    limits = {"head_timeout_s": head_timeout_s, "max_head_bytes": max_head_bytes, "max_drain_bytes": max_drain_bytes}
+    return type("ServiceProtocol", (ServiceProtocol,), limits)

@@ -481,3 +481,35 @@ def read_until_closed_or_answered(connection: socket.socket) -> bytes:
             if len(rest) >= length:
                 break
     return received
+
+
+def test_a_body_refused_unread_still_gets_its_answer(tmp_path, tiny_model):
+    """A 401, 413 or 429 goes out before the body is read. When the client asked to close the
+    connection (Python's urllib does), closing at once makes the kernel reset the body still
+    arriving, and the client reports the reset instead of the answer: the service drains first,
+    up to the body limit."""
+    import urllib.error
+    import urllib.request
+
+    limit = 16_000_000
+    with service_process(tmp_path, tiny_model, api_key="s3cret", max_body_bytes=str(limit)) as (_, url, log):
+        request = urllib.request.Request(
+            f"{url}/register", data=b"x" * 8_000_000, headers={"Content-Type": "application/json"}
+        )
+        for _ in range(3):
+            with pytest.raises(urllib.error.HTTPError) as refused:  # a reset would be a URLError
+                urllib.request.urlopen(request, timeout=30)
+            assert refused.value.code == 401 and "API key" in refused.value.read().decode()
+
+        # The drain is bounded: a declared length over the limit gets its 413 at once, and the
+        # connection is cut once the limit's worth of body has been dropped.
+        address = ("127.0.0.1", httpx.URL(url).port)
+        with socket.create_connection(address, timeout=30) as connection:
+            head = register_head(b"x" * 4 * limit).replace(b"\r\n\r\n", b"\r\nConnection: close\r\n\r\n")
+            connection.sendall(head)
+            assert connection.recv(65536).startswith(b"HTTP/1.1 413 ")
+            sent = 0
+            with pytest.raises(OSError):  # reset or broken pipe once the server stops reading
+                for _ in range(4 * limit // 65536):
+                    sent += connection.send(b"x" * 65536)
+            assert limit <= sent < 2 * limit  # dropped up to the limit, then cut (plus socket buffers)
