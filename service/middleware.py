@@ -121,7 +121,8 @@ class ContentEncodingMiddleware:
     held to `max_bytes` chunk by chunk, so a small body that inflates hugely (a zip bomb) is
     refused with 413 without ever being expanded in memory. Other encodings get 415 and bad
     compressed data 400, raised when the body is first read, so that a missing API key still gets
-    its 401 first. Runs inside BodyLimitMiddleware, which limits the bytes on the wire.
+    its 401 first (the rest of a refused body is dropped by the connection, service.protocol).
+    Runs inside BodyLimitMiddleware, which limits the bytes on the wire.
     """
 
     def __init__(self, app: ASGIApp, max_bytes: int):
@@ -147,7 +148,6 @@ def _inflating(receive: Receive, encoding: str, max_bytes: int) -> Receive:
         supported = ", ".join(sorted(INFLATABLE))
 
         async def refuse() -> Message:
-            await _drain(receive, await receive())
             raise HTTPException(
                 415, f"content-encoding: {encoding!r} is not supported; send the body plain or as {supported}"
             )
@@ -179,25 +179,10 @@ def _inflating(receive: Receive, encoding: str, max_bytes: int) -> Receive:
         message = await receive()
         if message["type"] != "http.request":
             return message
-        try:
-            body = inflate(message.get("body", b""))
-        except HTTPException as error:
-            if error.status_code == 400:  # read the rest, so that the client gets to read the answer
-                await _drain(receive, message)
-            raise
+        body = inflate(message.get("body", b""))
         if not message.get("more_body", False) and (not inflater.eof or inflater.unused_data):
             problem = "ends before its end" if not inflater.eof else "has data after its end"
             raise HTTPException(400, f"body: the {encoding} stream {problem}; send the whole body, compressed once")
         return {**message, "body": body}
 
     return inflating_receive
-
-
-async def _drain(receive: Receive, message: Message) -> None:
-    """Read and drop the rest of a body from `message` on (the size limit outside still applies).
-
-    A server that answers and closes while the client is still sending makes most clients see a
-    reset connection instead of the answer; reading to the end lets them read it.
-    """
-    while message["type"] == "http.request" and message.get("more_body", False):
-        message = await receive()

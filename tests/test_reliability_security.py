@@ -500,6 +500,12 @@ def test_a_body_refused_unread_still_gets_its_answer(tmp_path, tiny_model):
             with pytest.raises(urllib.error.HTTPError) as refused:  # a reset would be a URLError
                 urllib.request.urlopen(request, timeout=30)
             assert refused.value.code == 401 and "API key" in refused.value.read().decode()
+        for encoding, status in (("br", 415), ("gzip", 400)):  # refused by the app after one chunk
+            request.add_header("X-API-Key", "s3cret")
+            request.add_header("Content-Encoding", encoding)
+            with pytest.raises(urllib.error.HTTPError) as refused:
+                urllib.request.urlopen(request, timeout=30)
+            assert refused.value.code == status, refused.value.read()
 
         # The drain is bounded: a declared length over the limit gets its 413 at once, and the
         # connection is cut once the limit's worth of body has been dropped.

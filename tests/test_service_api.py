@@ -320,28 +320,6 @@ def test_a_compressed_body_is_never_inflated_beyond_the_limit():
     assert chunks  # reading stopped at the limit, long before the end of the body
 
 
-@pytest.mark.parametrize(("encoding", "status"), [("br", 415), ("gzip", 400)])
-def test_a_refused_compressed_body_is_read_to_its_end(encoding, status):
-    """Answering while the client still sends makes most clients see a reset, not the answer."""
-    from fastapi import HTTPException
-
-    from service.middleware import ContentEncodingMiddleware
-
-    chunks = [b"not compressed at all " * 100] * 50
-
-    async def receive():
-        return {"type": "http.request", "body": chunks.pop(0), "more_body": len(chunks) > 0}
-
-    async def app(scope, receive, send):
-        await receive()  # the first read is refused
-
-    middleware = ContentEncodingMiddleware(app, max_bytes=1 << 20)
-    with pytest.raises(HTTPException) as refused:
-        asyncio.run(middleware({"type": "http", "headers": [(b"content-encoding", encoding.encode())]}, receive, None))
-    assert refused.value.status_code == status
-    assert chunks == []
-
-
 async def test_large_json_bodies_are_parsed_one_at_a_time(serve, tiny_model, monkeypatch):
     """Parallel parses of big bodies only contend for the GIL and hold their objects meanwhile;
     small bodies are never held up behind them."""
