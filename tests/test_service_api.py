@@ -330,7 +330,7 @@ async def test_large_json_bodies_are_parsed_one_at_a_time(serve, tiny_model, mon
     from service.uploads import LARGE_JSON_BYTES
 
     running, most = {"large": 0, "all": 0}, {"large": 0, "all": 0}
-    guard = threading.Lock()
+    guard, large_started = threading.Lock(), threading.Event()
     original = schemas.RegisterRequest.model_validate_json
 
     def counted(data, *args, **kwargs):
@@ -339,8 +339,10 @@ async def test_large_json_bodies_are_parsed_one_at_a_time(serve, tiny_model, mon
             for kind in kinds:
                 running[kind] += 1
                 most[kind] = max(most[kind], running[kind])
+        if "large" in kinds:
+            large_started.set()
         try:
-            time.sleep(0.3 if "large" in kinds else 0.05)  # long enough for the others to arrive
+            time.sleep(0.5 if "large" in kinds else 0.05)  # long enough for the others to arrive
             return original(data, *args, **kwargs)
         finally:
             with guard:
@@ -352,12 +354,13 @@ async def test_large_json_bodies_are_parsed_one_at_a_time(serve, tiny_model, mon
     large = small + b" " * LARGE_JSON_BYTES  # JSON allows trailing whitespace
     async with serve(settings_for(tiny_model, max_body_bytes=4 * LARGE_JSON_BYTES)) as (app, client):
 
-        async def post(data: bytes, after_s: float = 0.0):
-            await asyncio.sleep(after_s)
+        async def post(data: bytes, once_a_large_one_parses: bool = False):
+            if once_a_large_one_parses:
+                assert await asyncio.to_thread(large_started.wait, 10)
             return await client.post("/register", content=data, headers=JSON_HEADERS)
 
         # The small body arrives while the first large one is being parsed and two more wait.
-        answers = await asyncio.gather(post(large), post(large), post(large), post(small, after_s=0.1))
+        answers = await asyncio.gather(post(large), post(large), post(large), post(small, once_a_large_one_parses=True))
     assert [answer.status_code for answer in answers] == [200, 200, 200, 200]
     assert most == {"large": 1, "all": 2}  # one large parse at a time, with the small one beside it
 
