@@ -59,7 +59,7 @@ def main(argv: list[str] | None = None) -> int:
         port=settings.port,
         log_level=settings.log_level,
         timeout_graceful_shutdown=math.ceil(settings.shutdown_timeout_s),  # uvicorn takes whole seconds
-        http=service_protocol(settings.request_head_timeout_s, settings.max_head_bytes, settings.max_body_bytes),
+        http=service_protocol(settings),
         h11_max_incomplete_event_size=settings.max_head_bytes,  # the same bound for a head over several reads
     )
     return 0

@@ -130,9 +130,9 @@ class ContentEncodingMiddleware:
         self.max_bytes = max_bytes
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
-        headers = scope.get("headers") or []
+        headers = (scope.get("headers") or []) if scope["type"] == "http" else []
         encoding = next((value for name, value in headers if name == b"content-encoding"), None)
-        if scope["type"] != "http" or encoding is None:
+        if encoding is None:
             await self.app(scope, receive, send)
             return
         name = encoding.decode("latin-1").strip().lower()

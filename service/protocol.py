@@ -28,9 +28,14 @@ import logging
 import h11
 from uvicorn.protocols.http.h11_impl import H11Protocol
 
+from service.settings import Settings
+
 logger = logging.getLogger("service.protocol")
 
-DEFAULT_MAX_HEAD_BYTES = 16 * 1024  # h11's and uvicorn's default for an incomplete head
+
+def _default(setting: str):
+    """A setting's default: the limits of the class as given to plain uvicorn (`--http`)."""
+    return Settings.model_fields[setting].default
 
 
 def _plain_response(status: str, text: bytes) -> bytes:
@@ -58,9 +63,9 @@ class _LingeringTransport:
 
 
 class ServiceProtocol(H11Protocol):
-    head_timeout_s: float = 10.0
-    max_head_bytes: int = DEFAULT_MAX_HEAD_BYTES
-    max_drain_bytes: int = 64 * 1024 * 1024
+    head_timeout_s: float = _default("request_head_timeout_s")
+    max_head_bytes: int = _default("max_head_bytes")
+    max_drain_bytes: int = _default("max_body_bytes")
     drain_timeout_s: float = 10.0
 
     def connection_made(self, transport: asyncio.Transport) -> None:  # type: ignore[override]
@@ -89,11 +94,6 @@ class ServiceProtocol(H11Protocol):
             )
             return
         super().data_received(data)
-
-    def eof_received(self) -> bool | None:
-        if self._draining:  # the client has sent everything and read the answer
-            self._socket.close()
-        return None  # asyncio closes the transport
 
     def on_response_complete(self) -> None:
         # Armed before uvicorn goes on to a pipelined request; a head that is complete by the
@@ -151,7 +151,11 @@ class ServiceProtocol(H11Protocol):
         self._socket.close()
 
 
-def service_protocol(head_timeout_s: float, max_head_bytes: int, max_drain_bytes: int) -> type[ServiceProtocol]:
-    """The protocol class to give uvicorn (`http=`), with these limits."""
-    limits = {"head_timeout_s": head_timeout_s, "max_head_bytes": max_head_bytes, "max_drain_bytes": max_drain_bytes}
+def service_protocol(settings: Settings) -> type[ServiceProtocol]:
+    """The protocol class to give uvicorn (`http=`), with the limits of these settings."""
+    limits = {
+        "head_timeout_s": settings.request_head_timeout_s,
+        "max_head_bytes": settings.max_head_bytes,
+        "max_drain_bytes": settings.max_body_bytes,
+    }
     return type("ServiceProtocol", (ServiceProtocol,), limits)
