@@ -61,9 +61,9 @@ RUN apt-get update \
 
 COPY --from=build /opt/venv /opt/venv
 # The service package with its committed ONNX model (service/models/ifnet.onnx).
-# `model` contributes only its NumPy geometry (the network itself needs torch and stays out).
+# `model` contributes only its torch-free modules (the network itself needs torch and stays out).
 COPY service /opt/app/service
-COPY model/__init__.py model/geometry.py /opt/app/model/
+COPY model/__init__.py model/geometry.py model/artifacts.py /opt/app/model/
 COPY docker/healthcheck.py /opt/app/healthcheck.py
 # Import what the service uses (which also writes its bytecode) and load the shipped model once
 # with this image's ONNX Runtime: an image that could not serve fails to build.

@@ -31,14 +31,9 @@ sys.path.insert(0, str(ROOT))
 
 from records import run_header, write_record  # noqa: E402
 
-from export.onnx_export import (  # noqa: E402
-    DYNAMIC_AXES,
-    RegistrationGraph,
-    export_onnx,
-    fold_batch_norms,
-    load_checkpoint,
-    ort_session,
-)
+from export.onnx_export import DYNAMIC_AXES, RegistrationGraph, export_onnx, fold_batch_norms  # noqa: E402
+from model.artifacts import ort_session  # noqa: E402
+from model.checkpoint import load_checkpoint  # noqa: E402
 from model.ifnet import PRESETS, IFNet, preset  # noqa: E402
 
 PAUSE_S = 0.05

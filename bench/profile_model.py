@@ -27,7 +27,7 @@ import onnxruntime as ort
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from service.engine import file_sha256  # noqa: E402
+from model.artifacts import file_sha256  # noqa: E402
 
 DEFAULT_MODEL = ROOT / "service" / "models" / "ifnet.onnx"
 

@@ -29,7 +29,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from service.engine import file_sha256  # noqa: E402
+from model.artifacts import file_sha256  # noqa: E402
 
 SHIPPED_MODEL = ROOT / "service" / "models" / "ifnet.onnx"
 

@@ -15,18 +15,10 @@ from pathlib import Path
 import onnx
 import torch
 
-from export.onnx_export import (
-    DEFAULT_OUTPUT,
-    DEFAULT_WEIGHTS,
-    DYNAMIC_AXES,
-    RegistrationGraph,
-    compare_with_torch,
-    export_onnx,
-    load_checkpoint,
-    metadata_for,
-    ort_session,
-)
-from model.training.cli import UserError, positive_int, reports_user_errors
+from export.onnx_export import DYNAMIC_AXES, RegistrationGraph, compare_with_torch, export_onnx, metadata_for
+from model.artifacts import DEFAULT_WEIGHTS, SERVED_MODEL, ort_session
+from model.checkpoint import load_checkpoint
+from model.cli import UserError, positive_int, reports_user_errors
 from model.training.data import evaluation_pairs
 
 PROG = "python -m export"
@@ -37,7 +29,7 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
         prog=PROG, description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
     parser.add_argument("--weights", type=Path, default=DEFAULT_WEIGHTS, help="checkpoint or shipped weights (.pt)")
-    parser.add_argument("--output", type=Path, default=DEFAULT_OUTPUT, help="where the checked .onnx goes")
+    parser.add_argument("--output", type=Path, default=SERVED_MODEL, help="where the checked .onnx goes")
     parser.add_argument(
         "--iterations",
         type=positive_int,

@@ -10,9 +10,8 @@ import copy
 import datetime as dt
 import json
 import time
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from pathlib import Path
-from typing import NamedTuple
 
 import numpy as np
 import onnx
@@ -22,15 +21,10 @@ from torch import Tensor, nn
 from torch.nn.utils.fusion import fuse_linear_bn_eval
 
 from model.geometry import rotation_angle_deg
-from model.ifnet import ChannelBatchNorm, IFNet, IFNetConfig, PointMLP
-from model.training.cli import UserError, load_torch_file
-from service.engine import file_sha256
+from model.ifnet import ChannelBatchNorm, IFNet, PointMLP
 
 OPSET = 17
 MODEL_NAME = "ifnet"
-PROJECT_ROOT = Path(__file__).resolve().parents[1]
-DEFAULT_WEIGHTS = PROJECT_ROOT / "model" / "weights" / "ifnet-fast.pt"
-DEFAULT_OUTPUT = PROJECT_ROOT / "service" / "models" / "ifnet.onnx"
 DYNAMIC_AXES = {
     # The two clouds get separate symbolic point counts: one shared name fails when they differ.
     "source": {0: "batch", 1: "n_source"},
@@ -77,45 +71,6 @@ class RegistrationGraph(nn.Module):
         return out.rotation, out.translation
 
 
-def read_weights(path: Path, what: str) -> dict:
-    """The state of shipped weights or a training checkpoint (model state and config at least), or a
-    UserError naming `what` (the option or role of the file) and the path."""
-    state = load_torch_file(path, what)
-    if "model" not in state or "config" not in state:
-        raise UserError(f"{what} {path}: not IFNet weights or a training checkpoint (no model state and config)")
-    return state
-
-
-def weights_preset(state: dict) -> str:
-    """The preset a weights file or checkpoint was trained as (checkpoints before the top-level
-    entry kept it only among their arguments); "custom" where neither says."""
-    return state.get("preset") or state.get("args", {}).get("preset") or "custom"
-
-
-class LoadedWeights(NamedTuple):
-    model: IFNet  # in eval mode
-    sha256: str  # of the file
-    preset: str
-
-
-def load_checkpoint(path: Path, iterations: int | None = None, time_steps: int | None = None) -> LoadedWeights:
-    """The model in eval mode from a training checkpoint or shipped weights, the file's sha256 and
-    its preset.
-
-    `iterations` and `time_steps` override the unroll the weights were trained with (`n_iters`
-    blocks per time step, `time_steps` passes with the target features fed back): every block
-    runs the same shared weights, so the weights run at any counts, and the cost grows with
-    their product.
-    """
-    state = read_weights(path, "weights file")
-    config = IFNetConfig.from_dict(state["config"])
-    unroll = {"n_iters": iterations, "time_steps": time_steps}
-    config = replace(config, **{k: v for k, v in unroll.items() if v is not None})  # rejects counts below 1
-    model = IFNet(config)
-    model.load_state_dict(state["model"])
-    return LoadedWeights(model.eval(), file_sha256(path), weights_preset(state))
-
-
 def export_onnx(
     module: nn.Module,
     path: Path,
@@ -152,13 +107,6 @@ def export_onnx(
         onnx.helper.set_model_props(proto, metadata)
         onnx.save(proto, str(path))
     return seconds
-
-
-def ort_session(path: Path, threads: int = 2) -> ort.InferenceSession:
-    options = ort.SessionOptions()
-    options.intra_op_num_threads = threads
-    options.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
-    return ort.InferenceSession(str(path), options, providers=["CPUExecutionProvider"])
 
 
 @dataclass

@@ -43,7 +43,7 @@ def main(argv: list[str] | None = None) -> int:
     logging.basicConfig(level=settings.log_level.upper(), format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     # Load the model before binding the port: a bad model path fails at once with its reason.
     try:
-        engine = OnnxEngine(settings.model_path, settings.threads, settings.calls_at_once)
+        engine = OnnxEngine(settings.model_path, settings.threads, settings.model_calls)
     except ModelLoadError as error:
         print(f"ifnet-serve: cannot start: {error}", file=sys.stderr)
         return 1

@@ -21,11 +21,12 @@ from service.formats import UnsupportedFormat
 from service.metrics import HttpMetricsMiddleware
 from service.middleware import BodyLimitMiddleware, ContentEncodingMiddleware, RequestIdMiddleware, request_id
 from service.oip import router as oip_router
-from service.registration import InvalidInput, RegistrationFailed
+from service.registration import ClientDisconnected, RegistrationFailed
 from service.routes import router
 from service.schemas import RegisterRequest, V2InferRequest
 from service.settings import Settings
-from service.state import ClientDisconnected, ServiceState
+from service.state import ServiceState
+from service.validation import InvalidInput
 
 logger = logging.getLogger(__name__)
 FIELD_NAME = re.compile(r"[a-z][a-z_-]*(\[\d+\])?")  # body, source, content-type, target[1], ...
@@ -43,7 +44,7 @@ async def _become_ready(state: ServiceState, batcher: MicroBatcher) -> None:
     """Warm the model up at every batch size, then start serving the queue and report ready."""
     try:
         if state.settings.warmup:
-            await batcher.warm_up(state.model.native_num_points)
+            await batcher.warm_up(state.model.network_points)
     except Exception as error:
         state.warmup_error = f"warm-up failed: {error}"
         logger.exception("model warm-up failed; the service stays not ready")
@@ -60,19 +61,19 @@ def _lifespan(engine: Engine | None):
         settings = state.settings
         # A missing or corrupt model raises ModelLoadError here, so startup fails with its message.
         state.engine = engine or await asyncio.to_thread(
-            OnnxEngine, settings.model_path, settings.threads, settings.calls_at_once
+            OnnxEngine, settings.model_path, settings.threads, settings.model_calls
         )
         state.batcher = MicroBatcher(
             state.engine,
             max_batch_size=settings.max_batch_size,
             max_queue_size=settings.max_queue_size,
             max_batch_delay_ms=settings.max_batch_delay_ms,
-            concurrent_calls=settings.calls_at_once,
+            model_calls=settings.model_calls,
             metrics=state.metrics,
         )
         info = state.model
         state.metrics.model.info(
-            {"name": info.name, "version": info.version, "native_num_points": str(info.native_num_points)}
+            {"name": info.name, "version": info.version, "network_points": str(info.network_points)}
         )
         becoming_ready = asyncio.create_task(_become_ready(state, state.batcher))
         try:

@@ -2,7 +2,7 @@
 
 Each submitted pair gets a future. A worker takes up to `max_batch_size` waiting pairs (after
 an optional delay to let more arrive), runs one model call per input shape on a thread of its
-own so that the event loop stays free, and resolves the futures. `concurrent_calls` workers
+own so that the event loop stays free, and resolves the futures. `model_calls` workers
 (default 1) take batches side by side, each with its own thread. A pair whose caller gave up
 (timeout, client disconnect) has a cancelled future: the worker skips it, or drops its result.
 """
@@ -20,9 +20,19 @@ import numpy as np
 
 from service.engine import Engine, warm_up_engine
 from service.metrics import Metrics
-from service.registration import Prediction
 
 logger = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class Prediction:
+    """The model's transform between the normalised clouds, and what it cost."""
+
+    rotation: np.ndarray  # [3, 3]
+    translation: np.ndarray  # [3], normalised units
+    queue_ms: float = 0.0
+    inference_ms: float = 0.0
+    batch_size: int = 1
 
 
 class QueueFullError(Exception):
@@ -62,7 +72,7 @@ class MicroBatcher:
         max_batch_size: int,
         max_queue_size: int,
         max_batch_delay_ms: float = 0.0,
-        concurrent_calls: int = 1,
+        model_calls: int = 1,
         metrics: Metrics | None = None,
     ):
         self.engine = engine
@@ -76,29 +86,27 @@ class MicroBatcher:
         self._idle = asyncio.Event()
         self._idle.set()
         self._closing = False
-        self.concurrent_calls = concurrent_calls
+        self.model_calls = model_calls
         self._workers: list[asyncio.Task] = []
         self._batch_seconds = 1.0  # running estimate of one model call, for Retry-After
         # One thread per worker: ORT parallelises inside a call with the engine's threads.
-        self._executor = ThreadPoolExecutor(max_workers=concurrent_calls, thread_name_prefix="ifnet-inference")
+        self._executor = ThreadPoolExecutor(max_workers=model_calls, thread_name_prefix="ifnet-inference")
 
     # ------------------------------------------------------------ lifecycle
 
-    async def warm_up(self, num_points: int) -> None:
+    async def warm_up(self, network_points: int) -> None:
         """One model call at every batch size the worker may use (1 .. max_batch_size)."""
         started = time.perf_counter()
         loop = asyncio.get_running_loop()
         await loop.run_in_executor(
-            self._executor, warm_up_engine, self.engine, range(1, self.max_batch_size + 1), num_points
+            self._executor, warm_up_engine, self.engine, range(1, self.max_batch_size + 1), network_points
         )
         logger.info("warm-up of batch sizes 1..%d took %.2f s", self.max_batch_size, time.perf_counter() - started)
 
     def start(self) -> None:
         if not self._workers:
             loop = asyncio.get_running_loop()
-            self._workers = [
-                loop.create_task(self._work(), name=f"ifnet-batcher-{i}") for i in range(self.concurrent_calls)
-            ]
+            self._workers = [loop.create_task(self._work(), name=f"ifnet-batcher-{i}") for i in range(self.model_calls)]
 
     async def close(self, grace_s: float) -> None:
         """Stop accepting pairs, let queued and running ones finish (up to grace_s), then stop."""
@@ -131,7 +139,7 @@ class MicroBatcher:
     def retry_after_s(self) -> int:
         """Rough time until the queue has room again: the batches ahead times a recent batch duration."""
         batches_ahead = math.ceil(self._waiting / self.max_batch_size) + 1
-        return max(1, math.ceil(batches_ahead * self._batch_seconds / self.concurrent_calls))
+        return max(1, math.ceil(batches_ahead * self._batch_seconds / self.model_calls))
 
     async def submit(self, source: np.ndarray, target: np.ndarray, timeout_s: float | None = None) -> Prediction:
         """Queue one normalised pair ([N, 3], [M, 3] float32) and wait for the model's answer.
@@ -218,7 +226,7 @@ class MicroBatcher:
                 pending.future.set_exception(error)
 
     async def _run(self, batch: list[_Pending]) -> None:
-        # Pairs stack only when their point counts agree (requests may choose max_points).
+        # Pairs stack only when their point counts agree (requests may choose network_points).
         groups: dict[tuple, list[_Pending]] = defaultdict(list)
         for pending in batch:
             groups[(pending.source.shape, pending.target.shape)].append(pending)

@@ -30,23 +30,12 @@ class RegistrationError(Exception):
         self.request_id = request_id
 
 
-def _options(
-    init: Any = None,
-    refine: bool | dict | None = None,
-    max_points: int | None = None,
-    sampling: str | None = None,
-    seed: int | None = None,
-    fitness_threshold: float | None = None,
-) -> dict[str, Any]:
-    values = {
-        "init": None if init is None else np.asarray(init, dtype=float).tolist(),
-        "refine": refine,
-        "max_points": max_points,
-        "sampling": sampling,
-        "seed": seed,
-        "fitness_threshold": fitness_threshold,
-    }
-    return {name: value for name, value in values.items() if value is not None}
+def _options(options: dict[str, Any]) -> str:
+    """Options as /register's JSON: None leaves the service's default, arrays become lists."""
+    chosen = {name: value for name, value in options.items() if value is not None}
+    return json.dumps(
+        {name: np.asarray(value).tolist() if isinstance(value, np.ndarray) else value for name, value in chosen.items()}
+    )
 
 
 class RegistrationClient:
@@ -72,10 +61,9 @@ class RegistrationClient:
         self._http.close()
 
     def register(self, source: np.ndarray, target: np.ndarray, **options: Any) -> dict[str, Any]:
-        """Register two [N, 3] arrays; options as in /register (init, refine, max_points, sampling, seed, ...).
+        """Register two [N, 3] arrays; options as in /register (init, refine, network_points, sampling, seed, ...).
 
-        The arrays go as one NPZ body (float64): for 100k-point clouds a request took 0.7 s end to
-        end here, against 1.8 s as JSON, most of the difference being JSON's encoding and parsing.
+        The arrays go as one NPZ body: much cheaper to encode and parse than JSON lists.
         """
         archive = io.BytesIO()
         np.savez(archive, source=np.asarray(source, np.float64), target=np.asarray(target, np.float64))
@@ -83,7 +71,7 @@ class RegistrationClient:
             "/register",
             content=archive.getvalue(),
             headers={"Content-Type": "application/x-npz"},
-            params={"options": json.dumps(_options(**options))},
+            params={"options": _options(options)},
         )
         return self._answer(response)
 
@@ -94,7 +82,7 @@ class RegistrationClient:
             "source": (source.name, source.read_bytes(), "application/octet-stream"),
             "target": (target.name, target.read_bytes(), "application/octet-stream"),
         }
-        data = {"options": json.dumps(_options(**options))}
+        data = {"options": _options(options)}
         return self._answer(self._http.post("/register", files=files, data=data))
 
     def health(self) -> dict[str, Any]:
@@ -141,7 +129,13 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--init", help="initial 4x4 guess: a .npy file or a text file of 4 rows")
     parser.add_argument("--refine", action="store_true", help="refine with ICP on the full clouds")
     parser.add_argument("--refine-distance", type=float, help="ICP correspondence distance, in the clouds' units")
-    parser.add_argument("--max-points", type=int, help="points per cloud given to the network")
+    parser.add_argument(
+        "--network-points",
+        "--max-points",
+        type=int,
+        dest="network_points",
+        help="points per cloud given to the network",
+    )
     parser.add_argument(
         "--sampling", choices=["fps", "random"], help="subsampling to the network's point count (service default: fps)"
     )
@@ -168,7 +162,7 @@ def main(argv: list[str] | None = None) -> int:
                 args.target,
                 init=init,
                 refine=refine,
-                max_points=args.max_points,
+                network_points=args.network_points,
                 sampling=args.sampling,
                 seed=args.seed,
             )

@@ -1,10 +1,7 @@
 """The ONNX Runtime session behind the service: loading, model metadata, thread count, warm-up."""
 
-import hashlib
 import json
 import logging
-import math
-import os
 import threading
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -12,11 +9,14 @@ from typing import Protocol
 
 import numpy as np
 
+from model.artifacts import file_sha256
+from service.cpus import available_cpus
+
 logger = logging.getLogger(__name__)
 
 REQUIRED_INPUTS = ("source", "target")
 REQUIRED_OUTPUTS = ("rotation", "translation")
-DEFAULT_NATIVE_POINTS = 768
+DEFAULT_NETWORK_POINTS = 768
 ORT_TO_V2_DATATYPE = {"tensor(float)": "FP32", "tensor(double)": "FP64", "tensor(int64)": "INT64"}
 
 
@@ -34,8 +34,8 @@ class TensorSpec:
 @dataclass(frozen=True)
 class ModelInfo:
     name: str
-    native_num_points: int
-    min_num_points: int  # fewest points per cloud the graph runs on (its widest kNN)
+    network_points: int  # points per cloud the network was exported for
+    min_network_points: int  # fewest points per cloud the graph runs on (its widest kNN)
     file_sha256: str
     path: str
     inputs: list[TensorSpec]
@@ -61,88 +61,6 @@ class Engine(Protocol):
     def run(self, source: np.ndarray, target: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """[B, N, 3] and [B, M, 3] float32 -> rotations [B, 3, 3] and translations [B, 3]."""
         ...
-
-
-# ---------------------------------------------------------------- CPUs this process may use
-
-
-def cgroup_cpu_limit(
-    root: Path = Path("/sys/fs/cgroup"), proc_cgroup: Path = Path("/proc/self/cgroup")
-) -> float | None:
-    """CPUs granted by a cgroup CPU quota (v2 `cpu.max` or v1 `cpu.cfs_quota_us`), or None without one.
-
-    The tightest quota along this process's cgroup path counts; inside a container the path is
-    usually "/", so the container's own limit is read at the mount root.
-    """
-    try:
-        lines = proc_cgroup.read_text().splitlines()
-    except OSError:
-        return None
-    limits: list[float] = []
-    for line in lines:
-        parts = line.split(":", 2)
-        if len(parts) != 3:
-            continue
-        hierarchy, controllers, relative = parts
-        if hierarchy == "0" and controllers == "":
-            base, reader = root, _read_cpu_max
-        elif "cpu" in controllers.split(","):
-            base = next((root / name for name in (controllers, "cpu", "cpu,cpuacct") if (root / name).is_dir()), None)
-            if base is None:
-                continue
-            reader = _read_cfs_quota
-        else:
-            continue
-        directory = base / relative.lstrip("/")
-        while True:
-            if (limit := reader(directory)) is not None:
-                limits.append(limit)
-            if directory == base or base not in directory.parents:
-                break
-            directory = directory.parent
-    return min(limits) if limits else None
-
-
-def _read_cpu_max(directory: Path) -> float | None:
-    try:
-        quota, period = (directory / "cpu.max").read_text().split()[:2]
-    except (OSError, ValueError):
-        return None
-    return None if quota == "max" else int(quota) / int(period)
-
-
-def _read_cfs_quota(directory: Path) -> float | None:
-    try:
-        quota = int((directory / "cpu.cfs_quota_us").read_text())
-        period = int((directory / "cpu.cfs_period_us").read_text())
-    except (OSError, ValueError):
-        return None
-    return None if quota <= 0 or period <= 0 else quota / period
-
-
-def available_cpus() -> int:
-    """CPUs this process may actually use: its affinity mask, capped by any cgroup quota.
-
-    os.cpu_count() would report the host's cores, far more than a container is allowed.
-    """
-    try:
-        cpus = len(os.sched_getaffinity(0))
-    except AttributeError:  # not Linux
-        cpus = os.cpu_count() or 1
-    if (quota := cgroup_cpu_limit()) is not None:
-        cpus = min(cpus, math.floor(quota))
-    return max(1, cpus)
-
-
-# ---------------------------------------------------------------- the ONNX Runtime engine
-
-
-def file_sha256(path: Path) -> str:
-    digest = hashlib.sha256()
-    with path.open("rb") as stream:
-        for chunk in iter(lambda: stream.read(1 << 20), b""):
-            digest.update(chunk)
-    return digest.hexdigest()
 
 
 def _tensor_specs(nodes) -> list[TensorSpec]:
@@ -174,23 +92,23 @@ def _metadata_count(metadata: dict[str, str], key: str, path: Path, missing: int
 class OnnxEngine:
     """The model in ONNX Runtime with graph optimisations on and intra-op threads sized to this process.
 
-    Up to `concurrent_calls` calls may run at once (ONNX Runtime's Run is thread-safe). A call that
+    Up to `model_calls` calls may run at once (ONNX Runtime's Run is thread-safe). A call that
     starts while no other runs gets all `threads` (default: the usable CPUs), the lowest latency
-    for a lone request; one that starts beside others gets threads // concurrent_calls, so that
+    for a lone request; one that starts beside others gets threads // model_calls, so that
     under load the calls share the CPUs out instead of their threads contending for them. Each
     thread count is its own session (a session's thread count is fixed when it opens); with one
     call at a time, or one thread, there is just one.
     """
 
-    def __init__(self, path: Path, threads: int | None = None, concurrent_calls: int = 1):
+    def __init__(self, path: Path, threads: int | None = None, model_calls: int = 1):
         path = Path(path)
         if not path.is_file():
             raise ModelLoadError(
                 f"model file {path} does not exist: set IFNET_MODEL_PATH (or --model-path) to an IFNet ONNX export"
             )
-        self.concurrent_calls = concurrent_calls
+        self.model_calls = model_calls
         self.threads = threads or available_cpus()  # of a call that runs alone
-        self.threads_beside_others = max(1, self.threads // concurrent_calls)
+        self.threads_beside_others = max(1, self.threads // model_calls)
         self._sessions = [_open_session(path, self.threads)]  # [alone, beside others] where the thread counts differ
         if self.threads_beside_others != self.threads:
             self._sessions.append(_open_session(path, self.threads_beside_others))
@@ -218,13 +136,13 @@ class OnnxEngine:
             except json.JSONDecodeError:
                 logger.warning("model %s: metadata `config` is not JSON; ignoring it", path)
         by_name = {spec.name: spec for spec in _tensor_specs(inputs) + _tensor_specs(outputs)}
-        native = _metadata_count(metadata, "num_points", path, DEFAULT_NATIVE_POINTS, "resampling clouds to")
+        native = _metadata_count(metadata, "num_points", path, DEFAULT_NETWORK_POINTS, "resampling clouds to")
         # Without the record, only the count the network was exported for is known to run.
         fewest = _metadata_count(metadata, "min_points", path, native, "giving it clouds of at least")
         self.info = ModelInfo(
             name=metadata.get("model_name", "ifnet"),
-            native_num_points=native,
-            min_num_points=fewest,
+            network_points=native,
+            min_network_points=fewest,
             file_sha256=file_sha256(path),
             path=str(path),
             inputs=[by_name[name] for name in REQUIRED_INPUTS],
@@ -242,8 +160,8 @@ class OnnxEngine:
             path,
             self.info.name,
             self.info.version,
-            self.info.native_num_points,
-            self.concurrent_calls,
+            self.info.network_points,
+            self.model_calls,
             self.threads,
             self.threads_beside_others,
         )
@@ -290,12 +208,12 @@ def _open_session(path: Path, threads: int):
         raise ModelLoadError(f"model file {path} could not be loaded by onnxruntime: {error}") from error
 
 
-def warm_up_engine(engine: Engine, batch_sizes: range | list[int], num_points: int) -> None:
+def warm_up_engine(engine: Engine, batch_sizes: range | list[int], network_points: int) -> None:
     """One model call at each batch size, so the first real requests pay no allocation or tuning cost."""
     rng = np.random.default_rng(0)
     for batch_size in batch_sizes:
         # Distinct random points in the unit ball: all-zero inputs would make every kNN a tie.
-        points = rng.normal(size=(2, batch_size, num_points, 3)).astype(np.float32)
+        points = rng.normal(size=(2, batch_size, network_points, 3)).astype(np.float32)
         points /= np.linalg.norm(points, axis=-1, keepdims=True).max()
         warm = getattr(engine, "warm_up", engine.run)  # an engine with several sessions warms each
         warm(points[0], points[1])

@@ -13,7 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
-from service.registration import InvalidInput, as_points
+from service.validation import InvalidInput, as_points
 
 FORMATS = ("ply", "pcd", "npy")
 NPY_MAGIC = b"\x93NUMPY"
@@ -38,15 +38,15 @@ def detect_format(data: bytes) -> str | None:
     return None
 
 
-def read_cloud(data: bytes, field: str, max_points: int) -> np.ndarray:
+def read_cloud(data: bytes, field: str, max_cloud_points: int) -> np.ndarray:
     """One cloud [N, 3] float64 from the bytes of a PLY, PCD or NPY file."""
     kind = detect_format(data)
     if kind == "ply":
-        points = read_ply(data, field, max_points)
+        points = read_ply(data, field, max_cloud_points)
     elif kind == "pcd":
-        points = read_pcd(data, field, max_points)
+        points = read_pcd(data, field, max_cloud_points)
     elif kind == "npy":
-        points = read_npy(data, field, max_points)
+        points = read_npy(data, field, max_cloud_points)
     elif kind == "npz":
         raise UnsupportedFormat(f"{field}: an NPZ archive holds several arrays; upload one cloud as PLY, PCD or NPY")
     else:
@@ -54,19 +54,19 @@ def read_cloud(data: bytes, field: str, max_points: int) -> np.ndarray:
     return as_points(points, field)
 
 
-def read_cloud_file(path: str | Path, max_points: int = 10_000_000) -> np.ndarray:
+def read_cloud_file(path: str | Path, max_cloud_points: int = 10_000_000) -> np.ndarray:
     """A cloud from a file on disk (used by the command-line client)."""
-    return read_cloud(Path(path).read_bytes(), str(path), max_points)
+    return read_cloud(Path(path).read_bytes(), str(path), max_cloud_points)
 
 
-def _too_many(field: str, count: int, max_points: int) -> InvalidInput:
-    return InvalidInput(field, f"the file declares {count} points, more than the limit of {max_points}")
+def _too_many(field: str, count: int, max_cloud_points: int) -> InvalidInput:
+    return InvalidInput(field, f"the file declares {count} points, more than the limit of {max_cloud_points}")
 
 
 # ---------------------------------------------------------------- PLY
 
 
-def read_ply(data: bytes, field: str, max_points: int) -> np.ndarray:
+def read_ply(data: bytes, field: str, max_cloud_points: int) -> np.ndarray:
     from plyfile import PlyData
 
     header_end = data.find(b"end_header")
@@ -75,8 +75,8 @@ def read_ply(data: bytes, field: str, max_points: int) -> np.ndarray:
     match = re.search(rb"^element\s+vertex\s+(\d+)", data[:header_end], flags=re.MULTILINE)
     if match is None:
         raise InvalidInput(field, "PLY file has no `vertex` element")
-    if int(match.group(1)) > max_points:
-        raise _too_many(field, int(match.group(1)), max_points)
+    if int(match.group(1)) > max_cloud_points:
+        raise _too_many(field, int(match.group(1)), max_cloud_points)
     try:
         vertices = PlyData.read(io.BytesIO(data))["vertex"]
         names = {prop.name for prop in vertices.properties}
@@ -112,7 +112,7 @@ def _pcd_header(data: bytes, field: str) -> tuple[dict[str, list[str]], int]:
     raise InvalidInput(field, "PCD header has no DATA line")
 
 
-def read_pcd(data: bytes, field: str, max_points: int) -> np.ndarray:
+def read_pcd(data: bytes, field: str, max_cloud_points: int) -> np.ndarray:
     from pypcd4 import PointCloud
 
     header, data_start = _pcd_header(data, field)
@@ -128,8 +128,8 @@ def read_pcd(data: bytes, field: str, max_points: int) -> np.ndarray:
         )
     except (KeyError, ValueError, IndexError):
         raise InvalidInput(field, "PCD header lacks a valid POINTS, WIDTH/HEIGHT, SIZE or COUNT line") from None
-    if count > max_points:
-        raise _too_many(field, count, max_points)
+    if count > max_cloud_points:
+        raise _too_many(field, count, max_cloud_points)
     encoding = (header["DATA"] or [""])[0].lower()
     if encoding not in ("ascii", "binary", "binary_compressed"):
         raise UnsupportedFormat(
@@ -163,22 +163,22 @@ def _npy_header(stream: io.BytesIO, field: str) -> tuple[tuple[int, ...], np.dty
     return shape, dtype
 
 
-def read_npy(data: bytes, field: str, max_points: int) -> np.ndarray:
+def read_npy(data: bytes, field: str, max_cloud_points: int) -> np.ndarray:
     """An [N, 3] numeric array; object arrays are refused (loading them would need pickle)."""
     shape, dtype = _npy_header(io.BytesIO(data), field)
     if dtype.hasobject:
         raise InvalidInput(field, "NPY object arrays are not accepted (they need pickle); save a numeric N x 3 array")
     if len(shape) != 2 or shape[1] != 3:
         raise InvalidInput(field, f"NPY array must be N x 3, got shape {list(shape)}")
-    if shape[0] > max_points:
-        raise _too_many(field, shape[0], max_points)
+    if shape[0] > max_cloud_points:
+        raise _too_many(field, shape[0], max_cloud_points)
     try:
         return np.load(io.BytesIO(data), allow_pickle=False)
     except ValueError as error:
         raise InvalidInput(field, f"unreadable NPY file: {error}") from None
 
 
-def read_pair(data: bytes, max_points: int) -> tuple[np.ndarray, np.ndarray]:
+def read_pair(data: bytes, max_cloud_points: int) -> tuple[np.ndarray, np.ndarray]:
     """Source and target from one raw body: NPY of shape [2, N, 3], or NPZ with arrays `source` and `target`."""
     kind = detect_format(data)
     if kind == "npy":
@@ -189,15 +189,15 @@ def read_pair(data: bytes, max_points: int) -> tuple[np.ndarray, np.ndarray]:
             raise InvalidInput(
                 "body", f"a raw NPY body must be a numeric [2, N, 3] array (source, target), got {list(shape)}"
             )
-        if shape[1] > max_points:
-            raise _too_many("body", shape[1], max_points)
+        if shape[1] > max_cloud_points:
+            raise _too_many("body", shape[1], max_cloud_points)
         try:
             pair = np.load(io.BytesIO(data), allow_pickle=False)
         except ValueError as error:
             raise InvalidInput("body", f"unreadable NPY body: {error}") from None
         return as_points(pair[0], "source"), as_points(pair[1], "target")
     if kind == "npz":
-        return _read_npz_pair(data, max_points)
+        return _read_npz_pair(data, max_cloud_points)
     if kind in ("ply", "pcd"):
         raise UnsupportedFormat(
             f"body: a raw {kind.upper()} body holds one cloud; send source and target as multipart/form-data file parts"
@@ -205,8 +205,8 @@ def read_pair(data: bytes, max_points: int) -> tuple[np.ndarray, np.ndarray]:
     raise UnsupportedFormat("body: unrecognised format; send NPY ([2, N, 3]) or NPZ (`source`, `target`) bytes")
 
 
-def _read_npz_pair(data: bytes, max_points: int) -> tuple[np.ndarray, np.ndarray]:
-    limit = max_points * 3 * 8 + 4096  # the largest acceptable float64 cloud plus its NPY header
+def _read_npz_pair(data: bytes, max_cloud_points: int) -> tuple[np.ndarray, np.ndarray]:
+    limit = max_cloud_points * 3 * 8 + 4096  # the largest acceptable float64 cloud plus its NPY header
     try:
         archive = zipfile.ZipFile(io.BytesIO(data))
         sizes = {info.filename: info.file_size for info in archive.infolist()}
@@ -219,9 +219,9 @@ def _read_npz_pair(data: bytes, max_points: int) -> tuple[np.ndarray, np.ndarray
             raise InvalidInput(name, f"the NPZ archive has no `{name}` array (it has {sorted(sizes)})")
         if size > limit:
             raise InvalidInput(
-                name, f"the NPZ array is {size} bytes uncompressed, more than a cloud of {max_points} points"
+                name, f"the NPZ array is {size} bytes uncompressed, more than a cloud of {max_cloud_points} points"
             )
-        clouds.append(read_npy(archive.read(f"{name}.npy"), name, max_points))
+        clouds.append(read_npy(archive.read(f"{name}.npy"), name, max_cloud_points))
     return as_points(clouds[0], "source"), as_points(clouds[1], "target")
 
 

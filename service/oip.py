@@ -13,7 +13,7 @@ from fastapi.responses import JSONResponse
 
 from service import __version__
 from service.dependencies import AdmittedService, LoadedService, Service, require_api_key
-from service.registration import InvalidInput, as_points
+from service.registration import register_pairs, request_deadline
 from service.schemas import (
     RegistrationOptions,
     V2Error,
@@ -28,6 +28,7 @@ from service.schemas import (
 )
 from service.state import ServiceState
 from service.uploads import parse_json
+from service.validation import InvalidInput, as_points
 
 router = APIRouter(prefix="/v2", tags=["open inference protocol v2"])
 
@@ -84,7 +85,7 @@ async def model_metadata(model_name: ModelName, service: LoadedService) -> V2Mod
         inputs=INPUTS,
         outputs=OUTPUTS,
         parameters={
-            "native_num_points": info.native_num_points,
+            "network_points": info.network_points,
             "preset": info.preset,
             "weights_sha256": info.weights_sha256,
             "file_sha256": info.file_sha256,
@@ -127,9 +128,9 @@ def _clouds(tensor: V2Tensor) -> np.ndarray:
     summary="Register point clouds (v2 inference)",
 )
 async def infer(model_name: ModelName, request: Request, service: AdmittedService) -> V2InferResponse:
-    """Same pipeline and batcher as /register; `parameters` may set `max_points`, `sampling` and `seed`."""
+    """Same pipeline and batcher as /register; `parameters` may set `network_points`, `sampling` and `seed`."""
     _check_name(model_name, service)
-    async with service.deadline():
+    async with request_deadline(service.settings):
         return await _infer(await parse_json(request, V2InferRequest), request, service)
 
 
@@ -148,7 +149,7 @@ async def _infer(payload: V2InferRequest, request: Request, service: ServiceStat
     if len(source) != len(target):
         raise InvalidInput("target", f"batch size {len(target)} differs from the source's {len(source)}")
     options = RegistrationOptions.model_validate(payload.parameters or {})
-    results = await service.register(request, list(zip(source, target, strict=True)), options)
+    results = await register_pairs(service, request, list(zip(source, target, strict=True)), options)
     wanted = [requested.name for requested in payload.outputs] if payload.outputs else ["rotation", "translation"]
     values = {
         "rotation": np.stack([result.rotation for result in results]).astype(np.float32),

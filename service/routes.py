@@ -6,22 +6,16 @@ from typing import Annotated
 from fastapi import APIRouter, Depends, Query, Request, Response
 from fastapi.responses import JSONResponse
 
-from model.geometry import to_matrix
 from service.dependencies import AdmittedService, Service, require_api_key
-from service.registration import RegistrationResult
+from service.registration import register_pairs, request_deadline
 from service.schemas import (
     EXAMPLE_SOURCE,
     EXAMPLE_TARGET,
-    CloudPointCounts,
     ErrorResponse,
     HealthResponse,
     LatencySummary,
-    ModelDescription,
-    PointCounts,
     ReadyResponse,
-    Refinement,
     RegisterResponse,
-    Timings,
 )
 from service.uploads import read_register_body
 
@@ -81,40 +75,6 @@ _ERRORS = {
 }
 
 
-def _matrix(array) -> list[list[float]]:
-    return [[float(value) for value in row] for row in array]
-
-
-def to_response(result: RegistrationResult, model: ModelDescription, started: float) -> RegisterResponse:
-    refinement = None
-    if result.refinement is not None:
-        refine = result.refinement
-        network_transform = to_matrix(refine.network_rotation, refine.network_translation)
-        refinement = Refinement(
-            max_distance=refine.max_distance, iterations=refine.iterations, network_transform=_matrix(network_transform)
-        )
-    prediction = result.prediction
-    return RegisterResponse(
-        rotation=_matrix(result.rotation),
-        translation=[float(value) for value in result.translation],
-        transform=_matrix(result.transform),
-        fitness=result.fitness,
-        inlier_rmse=result.inlier_rmse,
-        fitness_threshold=result.fitness_threshold,
-        points=CloudPointCounts(source=PointCounts(**vars(result.source)), target=PointCounts(**vars(result.target))),
-        refinement=refinement,
-        model=model,
-        timings_ms=Timings(
-            queue_ms=prediction.queue_ms,
-            inference_ms=prediction.inference_ms,
-            preprocess_ms=result.preprocess_ms,
-            postprocess_ms=result.postprocess_ms,
-            total_ms=(time.perf_counter() - started) * 1000.0,
-            batch_size=prediction.batch_size,
-        ),
-    )
-
-
 @router.post(
     "/register",
     response_model=RegisterResponse,
@@ -144,10 +104,11 @@ async def register(
     the network runs.
     """
     started = time.perf_counter()
-    async with service.deadline():
+    async with request_deadline(service.settings):
         source, target, parsed = await read_register_body(request, options, service.settings)
-        (result,) = await service.register(request, [(source, target)], parsed)
-    return to_response(result, service.model_description(), started)
+        (result,) = await register_pairs(service, request, [(source, target)], parsed)
+    total_ms = (time.perf_counter() - started) * 1000.0
+    return RegisterResponse.from_result(result, service.model_description(), total_ms)
 
 
 @router.get(

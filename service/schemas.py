@@ -4,18 +4,23 @@ from typing import Annotated, Any, Literal
 
 import numpy as np
 from pydantic import (
+    AliasChoices,
     BaseModel,
+    BeforeValidator,
     ConfigDict,
     Field,
     PlainSerializer,
     PlainValidator,
     ValidationInfo,
     WithJsonSchema,
+    computed_field,
     field_validator,
 )
 from pydantic_core import PydanticCustomError
 
-from service.registration import InvalidInput, as_points, as_rigid_transform
+from service.validation import InvalidInput, as_points, as_rigid_transform
+
+Sampling = Literal["fps", "random"]
 
 
 def _example_pair() -> tuple[list[list[float]], list[list[float]], list[list[float]]]:
@@ -87,8 +92,10 @@ Points = Annotated[
     ),
 ]
 RigidMatrix = Annotated[np.ndarray, PlainValidator(_validate_init), _to_list, WithJsonSchema(_matrix_schema(4, 4))]
-Matrix3 = Annotated[list[list[float]], Field(min_length=3, max_length=3)]
-Matrix4 = Annotated[list[list[float]], Field(min_length=4, max_length=4)]
+_from_array = BeforeValidator(lambda value: value.tolist() if isinstance(value, np.ndarray) else value)
+Matrix3 = Annotated[list[list[float]], _from_array, Field(min_length=3, max_length=3)]
+Matrix4 = Annotated[list[list[float]], _from_array, Field(min_length=4, max_length=4)]
+Vector3 = Annotated[list[float], _from_array, Field(min_length=3, max_length=3)]
 
 
 # ---------------------------------------------------------------- /register
@@ -121,14 +128,15 @@ class RegistrationOptions(BaseModel):
     refine: RefineOptions | None = Field(
         None, description="Refine with ICP: `true` for the defaults, or an object with its parameters."
     )
-    max_points: int | None = Field(
+    network_points: int | None = Field(
         None,
         ge=8,
         strict=True,
-        description="Points per cloud given to the network (default: the model's native count). Larger clouds are "
-        "subsampled to it, smaller ones upsampled by repeating points.",
+        validation_alias=AliasChoices("network_points", "max_points"),
+        description="Points per cloud given to the network (default: the model's own count). Larger clouds are "
+        "subsampled to it, smaller ones upsampled by repeating points. `max_points` is accepted as an older name.",
     )
-    sampling: Literal["fps", "random"] = Field(
+    sampling: Sampling = Field(
         "fps", description="Subsampling: deterministic farthest-point (`fps`) or seeded random (`random`)."
     )
     seed: int = Field(0, ge=0, le=2**32 - 1, strict=True, description="Seed of random sampling and upsampling.")
@@ -173,6 +181,8 @@ class RegisterRequest(RegistrationOptions):
 
 
 class PointCounts(BaseModel):
+    model_config = ConfigDict(from_attributes=True)
+
     received: int = Field(description="Points in the request.")
     duplicates_removed: int = Field(description="Exact duplicates dropped before resampling.")
     network_points: int = Field(description="Points the network saw.")
@@ -180,28 +190,39 @@ class PointCounts(BaseModel):
 
 
 class CloudPointCounts(BaseModel):
+    model_config = ConfigDict(from_attributes=True)
+
     source: PointCounts
     target: PointCounts
 
 
 class Refinement(BaseModel):
+    model_config = ConfigDict(from_attributes=True)
+
     max_distance: float = Field(description="ICP's correspondence distance, your units.")
     iterations: int
     network_transform: Matrix4 = Field(description="The transform before refinement.")
 
 
 class ModelDescription(BaseModel):
-    model_config = ConfigDict(protected_namespaces=())
+    model_config = ConfigDict(protected_namespaces=(), from_attributes=True)
 
     name: str
     version: str = Field(description="First 12 hex digits of the weights' (or model file's) SHA-256.")
     weights_sha256: str | None = None
     file_sha256: str
     preset: str | None = None
-    native_num_points: int
+    network_points: int = Field(description="Points per cloud the network was exported for (the default).")
+
+    @computed_field(description="The older name of `network_points`.", json_schema_extra={"deprecated": True})
+    @property
+    def native_num_points(self) -> int:
+        return self.network_points
 
 
 class Timings(BaseModel):
+    model_config = ConfigDict(from_attributes=True)
+
     queue_ms: float = Field(description="Wait in the batcher's queue.")
     inference_ms: float = Field(description="The model call (shared by the whole batch).")
     preprocess_ms: float
@@ -235,7 +256,7 @@ class RegisterResponse(BaseModel):
                         "weights_sha256": "ca91aa32a6d47a70244a359ce08fb45dbb45fb80c0d2126a7149bdf37078f76c",
                         "file_sha256": "a50a0e58ddcabf7935ff71c8d5a853735eba4d304129312aea2a5794eeb23e52",
                         "preset": "fast",
-                        "native_num_points": 768,
+                        "network_points": 768,
                     },
                     "timings_ms": {
                         "queue_ms": 0.1,
@@ -251,7 +272,7 @@ class RegisterResponse(BaseModel):
     )
 
     rotation: Matrix3
-    translation: list[float] = Field(min_length=3, max_length=3)
+    translation: Vector3
     transform: Matrix4 = Field(description="[[rotation, translation], [0, 0, 0, 1]].")
     fitness: float = Field(description="Share of moved source points with a target point within fitness_threshold.")
     inlier_rmse: float = Field(description="RMS distance of those inlier pairs, your units.")
@@ -260,6 +281,12 @@ class RegisterResponse(BaseModel):
     refinement: Refinement | None
     model: ModelDescription
     timings_ms: Timings
+
+    @classmethod
+    def from_result(cls, result: Any, model: ModelDescription, total_ms: float) -> "RegisterResponse":
+        """The answer from the pipeline's result, whose attributes carry the response's names."""
+        fields = {name: getattr(result, name) for name in cls.model_fields if hasattr(result, name)}
+        return cls.model_validate({**fields, "model": model, "timings_ms": {**result.timings_ms, "total_ms": total_ms}})
 
 
 class FieldError(BaseModel):
@@ -348,7 +375,7 @@ class V2InferRequest(BaseModel):
 
     id: str | None = None
     parameters: dict[str, Any] | None = Field(
-        None, description="Optional `max_points`, `sampling` and `seed`, as in /register."
+        None, description="Optional `network_points`, `sampling` and `seed`, as in /register."
     )
     inputs: list[V2Tensor]
     outputs: list[V2RequestedOutput] | None = None

@@ -3,10 +3,10 @@
 from pathlib import Path
 from typing import Literal
 
-from pydantic import Field, SecretStr, field_validator
+from pydantic import Field, SecretStr, field_validator, model_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
-from service.engine import available_cpus
+from service.cpus import available_cpus
 
 DEFAULT_MODEL_PATH = Path(__file__).resolve().parent / "models" / "ifnet.onnx"
 
@@ -25,10 +25,7 @@ class Settings(BaseSettings):
         description="ONNX Runtime threads of a model call that runs alone (calls beside others share them out); "
         "default: the CPUs this process may use.",
     )
-    # A call that starts alone gets every thread (a lone request's latency); calls beside it share
-    # them out. On a 2-CPU machine two 1-thread calls side by side served ~1.4x the pairs/s of one
-    # 2-thread call at a time, and with two calls batches of up to 4 served 16 clients fewer pairs/s
-    # than single pairs (bench/bench_service.py, docs/benchmarks.md): hence these two defaults.
+    # Two calls side by side, no batching: what served most pairs/s when measured (docs/benchmarks.md).
     model_calls: int = Field(
         2,
         ge=1,
@@ -40,8 +37,7 @@ class Settings(BaseSettings):
     max_batch_delay_ms: float = Field(
         0.0, ge=0.0, le=1000.0, description="How long a batch waits to fill up; 0 takes whatever is waiting."
     )
-    # 16 keeps the slowest admitted request (real scans of 12k-100k points run at ~2.6 pairs/s on 2 CPUs) inside
-    # the default timeout, and the memory of the bodies in progress well under 1 GB.
+    # Keeps the slowest admitted request inside the default timeout and the bodies' memory bounded.
     max_in_flight: int = Field(
         16,
         ge=1,
@@ -69,7 +65,7 @@ class Settings(BaseSettings):
     max_body_bytes: int = Field(64 * 1024 * 1024, ge=1024, description="Largest request body; larger gets 413.")
     min_points: int = Field(32, ge=8, description="Fewest distinct points a cloud must have.")
     max_cloud_points: int = Field(500_000, ge=1, description="Most points one cloud may have.")
-    max_network_points: int = Field(2048, ge=8, description="Largest per-request `max_points` (network input).")
+    max_network_points: int = Field(2048, ge=8, description="Largest per-request `network_points`.")
     fps_max_input_points: int = Field(
         32_768,
         ge=1024,
@@ -83,10 +79,14 @@ class Settings(BaseSettings):
     )
     latency_window: int = Field(1000, ge=10, description="Recent /register requests the /health percentiles cover.")
 
-    @property
-    def calls_at_once(self) -> int:
-        """`model_calls`, but at most one per thread: calls beyond that would only take turns on the CPUs."""
-        return min(self.model_calls, self.threads or available_cpus())
+    @model_validator(mode="after")
+    def _one_call_per_thread(self) -> "Settings":
+        """`threads` defaults to the usable CPUs, and `model_calls` is at most one per thread: calls
+        beyond that would only take turns on the CPUs."""
+        if self.threads is None:
+            self.threads = available_cpus()
+        self.model_calls = min(self.model_calls, self.threads)
+        return self
 
     @field_validator("api_key", mode="before")
     @classmethod

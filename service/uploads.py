@@ -13,9 +13,9 @@ from starlette.datastructures import UploadFile
 from starlette.requests import Request
 
 from service.formats import UnsupportedFormat, read_cloud, read_pair
-from service.registration import InvalidInput
 from service.schemas import RegisterRequest, RegistrationOptions
 from service.settings import Settings
+from service.validation import InvalidInput
 
 Model = TypeVar("Model", bound=BaseModel)
 

@@ -229,3 +229,12 @@ def service_process(tmp_path: Path, model: Path, **settings: str):
         if process.poll() is None:
             process.terminate()
             process.wait(timeout=60)
+
+
+def pipeline_inputs(network_points: int, *, min_points: int = 32, max_cloud_points: int = 500_000, **options):
+    """The options and settings that service.registration.register_clouds takes, for tests of the pipeline alone."""
+    from service.schemas import RegistrationOptions
+    from service.settings import Settings
+
+    settings = Settings(min_points=min_points, max_cloud_points=max_cloud_points)
+    return RegistrationOptions(network_points=network_points, **options), settings

@@ -23,8 +23,8 @@ os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 import numpy as np  # noqa: E402
 
+from model.cli import UserError, non_negative_float, non_negative_int, positive_int, reports_user_errors
 from model.geometry import from_matrix, icp_refine, registration_errors, summarise_errors
-from model.training.cli import UserError, non_negative_float, non_negative_int, positive_int, reports_user_errors
 from model.training.data import DEFAULT_DATA_DIR, Protocol, load_split, make_pair
 
 # Correspondence distance of every ICP here, in unit-sphere units: large enough to pull in a
@@ -49,7 +49,7 @@ def network_runner(model_path: Path, threads: int) -> Registration:
     if not model_path.is_file():
         raise UserError(f"--model {model_path}: no such file (an .onnx export or .pt weights)")
     if model_path.suffix == ".onnx":
-        from export.onnx_export import ort_session
+        from model.artifacts import ort_session
 
         try:
             session = ort_session(model_path, threads)
@@ -64,7 +64,7 @@ def network_runner(model_path: Path, threads: int) -> Registration:
 
     import torch
 
-    from export.onnx_export import load_checkpoint
+    from model.checkpoint import load_checkpoint
 
     torch.set_num_threads(threads)
     model = load_checkpoint(model_path).model
@@ -239,7 +239,7 @@ def shape_indices(total: int, limit: int, spread: bool) -> np.ndarray:
 
 
 def parse_args(argv: list[str] | None) -> argparse.Namespace:
-    from export.onnx_export import DEFAULT_OUTPUT
+    from model.artifacts import SERVED_MODEL
 
     parser = argparse.ArgumentParser(
         prog=PROG, description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
@@ -247,7 +247,7 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     parser.add_argument(
         "--model",
         type=Path,
-        default=DEFAULT_OUTPUT,
+        default=SERVED_MODEL,
         help=".onnx (ONNX Runtime) or .pt (torch); default: the served one",
     )
     parser.add_argument("--sets", nargs="+", default=list(SETS), choices=list(SETS))

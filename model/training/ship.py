@@ -17,9 +17,9 @@ from pathlib import Path
 
 import torch
 
-from export.onnx_export import DEFAULT_WEIGHTS, weights_preset
-from model.training.cli import UserError, load_torch_file, reports_user_errors
-from service.engine import file_sha256
+from model.artifacts import DEFAULT_WEIGHTS, file_sha256
+from model.checkpoint import weights_preset
+from model.cli import UserError, load_torch_file, reports_user_errors
 
 PROG = "python -m model.training.ship"
 

@@ -19,10 +19,8 @@ import torch
 from torch.utils.data import DataLoader, Subset
 from tqdm import tqdm
 
-from export.onnx_export import load_checkpoint, read_weights
-from model.geometry import rotation_angle_deg
-from model.ifnet import PRESETS, IFNet, IFNetConfig, preset
-from model.training.cli import (
+from model.checkpoint import load_checkpoint, read_weights
+from model.cli import (
     UserError,
     load_torch_file,
     non_negative_float,
@@ -31,6 +29,8 @@ from model.training.cli import (
     positive_int,
     reports_user_errors,
 )
+from model.geometry import rotation_angle_deg
+from model.ifnet import PRESETS, IFNet, IFNetConfig, preset
 from model.training.data import DEFAULT_DATA_DIR, NOISE_KINDS, Protocol, RegistrationPairs, load_split
 from model.training.losses import ifnet_losses, teacher_consistency_loss
 

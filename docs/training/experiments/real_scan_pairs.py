@@ -31,12 +31,16 @@ from model.geometry import (
     apply_transform,
     crop_nearest,
     disjoint_halves,
+    from_matrix,
     random_rotation,
     remove_duplicates,
     rotation_angle_deg,
 )
+from service.batcher import Prediction
 from service.engine import OnnxEngine
-from service.registration import Prediction, RefineParams, RegistrationParams, register_clouds
+from service.registration import register_clouds
+from service.schemas import RefineOptions, RegistrationOptions
+from service.settings import Settings
 
 REAL_SCANS = Path(__file__).resolve().parents[3].parent / "shared" / "data" / "real_scans.npz"
 
@@ -61,11 +65,11 @@ def rotation_errors(engine: OnnxEngine, pairs) -> tuple[np.ndarray, np.ndarray]:
         rotation, translation = engine.run(source[None], target[None])
         return Prediction(rotation[0], translation[0])
 
-    params = RegistrationParams(num_points=engine.info.native_num_points, refine=RefineParams())
+    options = RegistrationOptions(network_points=engine.info.network_points, refine=RefineOptions())
     alone, refined = [], []
     for source, target, true_rotation in pairs:
-        result = asyncio.run(register_clouds(source, target, params, predict, run_blocking=_inline))
-        alone.append(float(rotation_angle_deg(result.refinement.network_rotation, true_rotation)))
+        result = asyncio.run(register_clouds(source, target, options, Settings(), predict, run_blocking=_inline))
+        alone.append(float(rotation_angle_deg(from_matrix(result.refinement.network_transform)[0], true_rotation)))
         refined.append(float(rotation_angle_deg(result.rotation, true_rotation)))
     return np.array(alone), np.array(refined)
 

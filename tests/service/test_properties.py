@@ -13,21 +13,17 @@ import asyncio
 
 import numpy as np
 import pytest
+from conftest import pipeline_inputs
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 from pydantic import ValidationError
 
 from model.geometry import Normalisation, apply_transform, rotation_angle_deg, to_matrix
-from service.registration import (
-    InvalidInput,
-    Prediction,
-    RegistrationParams,
-    as_points,
-    as_rigid_transform,
-    register_clouds,
-)
+from service.batcher import Prediction
+from service.registration import register_clouds
 from service.schemas import RegistrationOptions
+from service.validation import InvalidInput, as_points, as_rigid_transform
 
 PROPERTY_SETTINGS = settings(
     max_examples=150, deadline=None, derandomize=True, suppress_health_check=[HealthCheck.too_slow]
@@ -132,14 +128,14 @@ def test_the_whole_pipeline_recovers_any_rigid_motion(
         seen.append(1)
         return Prediction(*kabsch(source_n.astype(np.float64), target_n.astype(np.float64)))
 
-    params = RegistrationParams(num_points=network_points, sampling=sampling, seed=case["seed"] % 1000, init=init)
-    result = asyncio.run(register_clouds(source, target, params, exact_model, run_blocking=_run_inline))
+    params = pipeline_inputs(network_points, sampling=sampling, seed=case["seed"] % 1000, init=init)
+    result = asyncio.run(register_clouds(source, target, *params, exact_model, run_blocking=_run_inline))
 
     assert seen == [1]
     # float32 network input: about 1e-7 relative per coordinate, amplified a little by the fit.
     assert rotation_angle_deg(result.rotation, rotation) < 1e-3
     np.testing.assert_allclose(result.translation, translation, rtol=0, atol=2e-5 * size_of(case))
-    assert result.source.received == len(source) and result.source.duplicates_removed >= duplicates
+    assert result.points.source.received == len(source) and result.points.source.duplicates_removed >= duplicates
     assert result.fitness == 1.0
 
 
@@ -253,10 +249,10 @@ def test_accepted_clouds_reach_the_model_normalised_and_junk_is_invalid_input(so
             assert np.linalg.norm(cloud, axis=1).max() <= RADIUS * (1.0 + 1e-5)
         return Prediction(np.eye(3), np.zeros(3))
 
-    params = RegistrationParams(num_points=network_points, min_points=8)
+    params = pipeline_inputs(network_points, min_points=8)
     try:
         clouds = as_points(source, "source"), as_points(target, "target")
-        result = asyncio.run(register_clouds(*clouds, params, contract_checking_model, run_blocking=_run_inline))
+        result = asyncio.run(register_clouds(*clouds, *params, contract_checking_model, run_blocking=_run_inline))
     except InvalidInput as error:
         assert error.field in ("source", "target") and error.problem
         return
@@ -268,10 +264,10 @@ def test_accepted_clouds_reach_the_model_normalised_and_junk_is_invalid_input(so
 def test_the_smallest_accepted_cloud_registers(count):
     """A deterministic anchor for the junk test: at min_points, a plain cloud is accepted."""
     cloud = np.random.default_rng(count).normal(size=(count, 3))
-    params = RegistrationParams(num_points=64, min_points=8)
+    params = pipeline_inputs(64, min_points=8)
 
     async def identity(source_n, target_n):
         return Prediction(np.eye(3), np.zeros(3))
 
-    result = asyncio.run(register_clouds(cloud, cloud, params, identity, run_blocking=_run_inline))
-    assert result.fitness == 1.0 and result.source.upsampled
+    result = asyncio.run(register_clouds(cloud, cloud, *params, identity, run_blocking=_run_inline))
+    assert result.fitness == 1.0 and result.points.source.upsampled

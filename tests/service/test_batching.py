@@ -12,12 +12,19 @@ import time
 
 import numpy as np
 import pytest
-from conftest import asgi_scope
+from conftest import asgi_scope, pipeline_inputs
 from prometheus_client.parser import text_string_to_metric_families
 
-from service.batcher import InferenceError, MicroBatcher, QueueFullError, RequestTimeoutError, ShuttingDownError
+from service.batcher import (
+    InferenceError,
+    MicroBatcher,
+    Prediction,
+    QueueFullError,
+    RequestTimeoutError,
+    ShuttingDownError,
+)
 from service.engine import OnnxEngine
-from service.registration import RegistrationParams, register_clouds
+from service.registration import register_clouds
 from service.schemas import RegisterRequest
 from service.settings import Settings
 
@@ -74,13 +81,11 @@ async def test_32_concurrent_requests_are_batched_and_each_gets_its_own_answer(s
     # One-at-a-time reference: the same pipeline, each pair alone in its own model call.
     async def alone(source, target):
         rotation, translation = engine.engine.run(source[None], target[None])
-        from service.registration import Prediction
-
         return Prediction(rotation[0].astype(np.float64), translation[0].astype(np.float64))
 
     for seed, response in enumerate(responses):
         assert response.status_code == 200, response.text
-        reference = await register_clouds(*pair(seed), RegistrationParams(num_points=64), alone)
+        reference = await register_clouds(*pair(seed), *pipeline_inputs(64), alone)
         np.testing.assert_allclose(response.json()["transform"], reference.transform, rtol=1e-12, atol=1e-12)
     assert sum(engine.calls) == 32 and max(engine.calls) == 8
     assert metrics["ifnet_batch_size_count{}"] == len(engine.calls)
@@ -153,8 +158,8 @@ async def test_a_full_queue_answers_429_with_retry_after(serve, tiny_model, gate
     assert metrics["ifnet_http_requests_total{method=POST,route=/register,status=429}"] == 1
 
 
-def test_retry_after_is_the_batches_ahead_times_a_recent_call_over_the_calls_at_once():
-    batcher = MicroBatcher(object(), max_batch_size=4, max_queue_size=16, concurrent_calls=2)
+def test_retry_after_is_the_batches_ahead_times_a_recent_call_over_the_model_calls():
+    batcher = MicroBatcher(object(), max_batch_size=4, max_queue_size=16, model_calls=2)
     batcher._batch_seconds = 3.0  # the running estimate of one call
     for waiting, seconds in ((0, 2), (4, 3), (5, 5), (9, 6), (16, 8)):
         batcher._waiting = waiting  # ceil(waiting / 4) batches queued, plus the one running
@@ -318,8 +323,8 @@ async def test_queue_full_and_inference_errors_are_typed(tiny_model):
     await batcher.close(grace_s=1)
 
 
-async def test_concurrent_calls_run_side_by_side_and_every_pair_gets_its_own_answer(tiny_model):
-    engine = OnnxEngine(tiny_model, threads=2, concurrent_calls=2)
+async def test_model_calls_run_side_by_side_and_every_pair_gets_its_own_answer(tiny_model):
+    engine = OnnxEngine(tiny_model, threads=2, model_calls=2)
     both_inside = threading.Barrier(2, timeout=30)  # breaks (a failed call) if calls never overlap
 
     class Paired:
@@ -329,7 +334,7 @@ async def test_concurrent_calls_run_side_by_side_and_every_pair_gets_its_own_ans
             both_inside.wait()
             return engine.run(source, target)
 
-    batcher = MicroBatcher(Paired(), max_batch_size=1, max_queue_size=8, concurrent_calls=2)
+    batcher = MicroBatcher(Paired(), max_batch_size=1, max_queue_size=8, model_calls=2)
     batcher.start()
     pairs = [tuple(cloud.astype(np.float32) for cloud in pair(seed)) for seed in range(4)]
     results = await asyncio.gather(*(batcher.submit(source, target) for source, target in pairs))

@@ -10,9 +10,9 @@ torch = pytest.importorskip("torch", reason="the training tests need torch")
 
 from scipy.spatial import cKDTree  # noqa: E402
 
-from export.onnx_export import DEFAULT_WEIGHTS  # noqa: E402
+from model.artifacts import DEFAULT_WEIGHTS  # noqa: E402
+from model.cli import UserError  # noqa: E402
 from model.geometry import apply_transform, disjoint_halves, matrix_to_euler  # noqa: E402
-from model.training.cli import UserError  # noqa: E402
 from model.training.data import Protocol, RegistrationPairs, load_split, make_pair, synthetic_shape  # noqa: E402
 from model.training.train import main as train_main  # noqa: E402
 
@@ -212,11 +212,11 @@ def test_the_shipped_record_names_the_noise_of_the_training_pairs():
 
 
 def test_only_the_full_evaluation_writes_the_published_report():
-    from export.onnx_export import DEFAULT_OUTPUT
+    from model.artifacts import SERVED_MODEL
     from model.training.evaluate import PUBLISHED_REPORT, QUICK_REPORT, parse_args
 
     assert parse_args([]).out == PUBLISHED_REPORT
-    assert parse_args(["--model", os.path.relpath(DEFAULT_OUTPUT)]).out == PUBLISHED_REPORT  # the default, spelt out
+    assert parse_args(["--model", os.path.relpath(SERVED_MODEL)]).out == PUBLISHED_REPORT  # the default, spelt out
     for partial in (["--limit", "100"], ["--sets", "jitter"], ["--no-baselines"], ["--shared-jitter"]):
         assert parse_args(partial).out == QUICK_REPORT, partial
     assert str(parse_args(["--limit", "5", "--out", "elsewhere"]).out) == "elsewhere"
@@ -252,7 +252,7 @@ def test_missing_data_gives_a_clear_error(tmp_path):
 
 def shipped_model_errors(pairs: list[dict]) -> tuple[np.ndarray, np.ndarray]:
     """Isotropic rotation (deg) and translation errors of the shipped weights on protocol pairs."""
-    from export.onnx_export import load_checkpoint
+    from model.checkpoint import load_checkpoint
     from model.geometry import registration_errors
 
     model = load_checkpoint(DEFAULT_WEIGHTS).model
@@ -319,12 +319,12 @@ def test_fine_tuning_starts_from_the_given_weights_on_noisy_pairs(tmp_path, shap
 
 
 def test_evaluation_reports_the_network_and_its_icp_refinement(tmp_path, shapes):
-    from export.onnx_export import DEFAULT_OUTPUT
+    from model.artifacts import SERVED_MODEL
     from model.training.evaluate import main as evaluate_main
 
     np.savez(tmp_path / "modelnet10_test.npz", points=shapes[:3])
     out = tmp_path / "eval"
-    args = ["--model", str(DEFAULT_OUTPUT), "--data-dir", str(tmp_path), "--out", str(out), "--no-baselines"]
+    args = ["--model", str(SERVED_MODEL), "--data-dir", str(tmp_path), "--out", str(out), "--no-baselines"]
     results = evaluate_main([*args, "--sets", "same", "jitter", "--jitter-sigma", "0.002"])
 
     for set_name in ("same", "jitter"):

@@ -9,7 +9,7 @@ from plyfile import PlyData, PlyElement
 from pypcd4 import Encoding, PointCloud
 
 from service.formats import UnsupportedFormat, detect_format, read_cloud, read_pair, write_ply
-from service.registration import InvalidInput
+from service.validation import InvalidInput
 
 # Multiples of 1/8: exact in every format, and compressible (pypcd4 falls back to uncompressed otherwise).
 POINTS = (np.random.default_rng(0).integers(-40, 40, size=(50, 3)) / 8.0).astype(np.float32)

@@ -78,7 +78,9 @@ async def test_register_answers_with_a_consistent_transform(serve, tiny_model):
         "upsampled": False,
     }
     assert answer["model"]["name"] == "ifnet" and answer["model"]["version"] == "0" * 12
-    assert answer["model"]["native_num_points"] == 64 and answer["refinement"] is None
+    assert (
+        answer["model"]["network_points"] == answer["model"]["native_num_points"] == 64 and answer["refinement"] is None
+    )
     timings = answer["timings_ms"]
     assert timings["batch_size"] == 1 and timings["total_ms"] >= timings["inference_ms"] >= 0
 
@@ -116,9 +118,9 @@ VALID_INIT = [[1, 0, 0, 0.5], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]]
         (body(source=RNG.normal(size=(2001, 3))), "source", "more than the limit of 2000"),
         (body(init=[[2, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]]), "init", "not a rigid transform"),
         (body(init=[[1, 0, 0], [0, 1, 0], [0, 0, 1]]), "init", r"4x4 matrix, got shape \[3, 3\]"),
-        (body(max_points=4096), "max_points", "more than this service's limit"),
-        (body(max_points=2), "max_points", "greater than or equal to 8"),
-        (body(max_points=10), "max_points", "is 10; this model needs at least 16 points per cloud"),
+        (body(network_points=4096), "network_points", "more than this service's limit"),
+        (body(network_points=2), "network_points", "greater than or equal to 8"),
+        (body(max_points=10), "network_points", "is 10; this model needs at least 16 points per cloud"),
         (body(sampling="voxel"), "sampling", "'fps' or 'random'"),
         (body(seed=-1), "seed", "greater than or equal to 0"),
         (body(refine={"max_distance": -1}), "refine", "greater than 0"),
@@ -499,7 +501,7 @@ async def test_an_unforeseen_error_is_still_a_json_answer(tiny_model, monkeypatc
     def broken(*args, **kwargs):
         raise RuntimeError("a bug")
 
-    monkeypatch.setattr(routes, "to_response", broken)
+    monkeypatch.setattr(routes, "register_pairs", broken)
     app = create_app(settings_for(tiny_model))
     async with app.router.lifespan_context(app):
         await asyncio.wait_for(app.state.service.ready.wait(), timeout=60)
@@ -690,13 +692,13 @@ async def test_v2_returns_only_the_outputs_asked_for(serve, tiny_model):
     assert [(output["name"], output["shape"]) for output in answer["outputs"]] == [("translation", [1, 3])]
 
 
-async def test_max_points_may_reach_the_services_limit_and_not_beyond(serve, tiny_model):
+async def test_network_points_may_reach_the_services_limit_and_not_beyond(serve, tiny_model):
     async with serve(settings_for(tiny_model, max_network_points=256)) as (app, client):
-        at_limit = await client.post("/register", json=body(max_points=256))
-        beyond = await client.post("/register", json=body(max_points=257))
+        at_limit = await client.post("/register", json=body(network_points=256))
+        beyond = await client.post("/register", json=body(network_points=257))
     assert at_limit.status_code == 200, at_limit.text
     assert at_limit.json()["points"]["source"]["network_points"] == 256
-    assert beyond.status_code == 422 and beyond.json()["errors"][0]["field"] == "max_points"
+    assert beyond.status_code == 422 and beyond.json()["errors"][0]["field"] == "network_points"
 
 
 async def test_health_percentiles_cover_only_the_latest_window(serve, tiny_model):
@@ -737,7 +739,7 @@ async def test_v2_metadata_and_health(serve, tiny_model):
         {"name": "rotation", "datatype": "FP32", "shape": [-1, 3, 3]},
         {"name": "translation", "datatype": "FP32", "shape": [-1, 3]},
     ]
-    assert metadata["parameters"]["native_num_points"] == 64
+    assert metadata["parameters"]["network_points"] == 64
     assert missing.status_code == 404 and "pointnet" in missing.json()["error"]
 
 
@@ -822,7 +824,7 @@ async def test_v2_errors_use_the_v2_error_format(serve, tiny_model, inputs, mess
 async def test_v2_infer_on_the_shipped_model_matches_register(serve, shipped_model):
     """The real network (N=64 to stay fast): /register and v2 give the same transform."""
     request = {
-        "parameters": {"max_points": 64},
+        "parameters": {"network_points": 64},
         "inputs": [
             v2_tensor("source", SOURCE[None].astype(np.float32)),
             v2_tensor("target", TARGET[None].astype(np.float32)),
@@ -835,7 +837,7 @@ async def test_v2_infer_on_the_shipped_model_matches_register(serve, shipped_mod
             json=body(
                 SOURCE.astype(np.float32).astype(np.float64),
                 TARGET.astype(np.float32).astype(np.float64),
-                max_points=64,
+                network_points=64,
             ),
         )
     assert v2.status_code == reference.status_code == 200

@@ -19,7 +19,7 @@ from conftest import free_port, service_process
 from service.client import RegistrationClient, RegistrationError
 from service.formats import read_cloud_file, write_ply
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 
 
 def run_client(*args: str) -> subprocess.CompletedProcess:
@@ -101,9 +101,26 @@ def test_the_command_line_client_sends_its_options(tmp_path, monkeypatch, capsys
                 "model": {"name": "ifnet", "version": "0" * 12}, "timings_ms": {"total_ms": 1.0}}  # fmt: skip
 
     monkeypatch.setattr(client.RegistrationClient, "register_files", register_files)
-    argv = ["s.ply", "t.ply", "--refine-distance", "0.25", "--max-points", "512", "--sampling", "random", "--seed", "3"]
+    argv = [
+        "s.ply",
+        "t.ply",
+        "--refine-distance",
+        "0.25",
+        "--network-points",
+        "512",
+        "--sampling",
+        "random",
+        "--seed",
+        "3",
+    ]
     assert client.main(argv) == 0
-    assert sent == {"init": None, "refine": {"max_distance": 0.25}, "max_points": 512, "sampling": "random", "seed": 3}
+    assert sent == {
+        "init": None,
+        "refine": {"max_distance": 0.25},
+        "network_points": 512,
+        "sampling": "random",
+        "seed": 3,
+    }
     assert capsys.readouterr().out.startswith("transform (source -> target):")
 
 

@@ -26,7 +26,7 @@ from service.batcher import MicroBatcher, RequestTimeoutError
 from service.engine import OnnxEngine
 from service.settings import Settings
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 JSON = {"content-type": "application/json"}
 
 

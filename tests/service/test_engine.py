@@ -10,10 +10,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from service.engine import ModelLoadError, OnnxEngine, available_cpus, cgroup_cpu_limit
+from service.cpus import available_cpus, cgroup_cpu_limit
+from service.engine import ModelLoadError, OnnxEngine
 from service.settings import Settings
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 
 
 def write(path: Path, text: str) -> None:
@@ -56,10 +57,10 @@ def test_available_cpus_respects_the_affinity_mask():
 @pytest.mark.parametrize(("quota", "expected"), [(None, 4), (2.0, 2), (2.9, 2), (1.5, 1), (0.5, 1)])
 def test_a_fractional_cpu_quota_rounds_down_but_never_below_one(monkeypatch, quota, expected):
     """1.5 CPUs give one thread: a second would only take turns with the first."""
-    import service.engine
+    import service.cpus
 
-    monkeypatch.setattr(service.engine.os, "sched_getaffinity", lambda pid: set(range(4)))
-    monkeypatch.setattr(service.engine, "cgroup_cpu_limit", lambda: quota)
+    monkeypatch.setattr(service.cpus.os, "sched_getaffinity", lambda pid: set(range(4)))
+    monkeypatch.setattr(service.cpus, "cgroup_cpu_limit", lambda: quota)
     assert available_cpus() == expected
 
 
@@ -69,20 +70,21 @@ def test_engine_threads_follow_the_usable_cpus_unless_set(tiny_model):
     assert engine.threads == 1
     assert engine.session.get_session_options().intra_op_num_threads == 1
     # a call beside others gets a share of the threads (at least one); a lone call gets them all
-    shared = OnnxEngine(tiny_model, threads=4, concurrent_calls=2)
+    shared = OnnxEngine(tiny_model, threads=4, model_calls=2)
     assert (shared.threads, shared.threads_beside_others) == (4, 2)
-    single = OnnxEngine(tiny_model, threads=1, concurrent_calls=2)
+    single = OnnxEngine(tiny_model, threads=1, model_calls=2)
     assert (single.threads, single.threads_beside_others) == (1, 1)
 
 
 def test_model_calls_are_capped_at_one_per_thread():
-    assert Settings(threads=4, model_calls=2).calls_at_once == 2
-    assert Settings(threads=1, model_calls=2).calls_at_once == 1  # two calls would only take turns
-    assert Settings(model_calls=16).calls_at_once == min(16, available_cpus())
+    assert Settings(threads=4, model_calls=2).model_calls == 2
+    assert Settings(threads=1, model_calls=2).model_calls == 1  # two calls would only take turns
+    assert Settings(model_calls=16).model_calls == min(16, available_cpus())
+    assert Settings().threads == available_cpus()
 
 
 def test_a_lone_call_runs_on_every_thread_and_calls_beside_it_on_their_share(tiny_model):
-    engine = OnnxEngine(tiny_model, threads=2, concurrent_calls=2)
+    engine = OnnxEngine(tiny_model, threads=2, model_calls=2)
     used = []
 
     class Recording:  # stands in for an ORT session and records its thread count per call
@@ -104,8 +106,8 @@ def test_a_lone_call_runs_on_every_thread_and_calls_beside_it_on_their_share(tin
 
 def test_metadata_is_read(tiny_model):
     info = OnnxEngine(tiny_model).info
-    assert (info.name, info.preset, info.native_num_points, info.opset) == ("ifnet", "tiny-test", 64, "17")
-    assert info.min_num_points == 16
+    assert (info.name, info.preset, info.network_points, info.opset) == ("ifnet", "tiny-test", 64, "17")
+    assert info.min_network_points == 16
     assert info.version == "0" * 12 and info.config == {"num_points": 64} and len(info.file_sha256) == 64
     assert [spec.name for spec in info.inputs] == ["source", "target"]
     assert [spec.datatype for spec in info.outputs] == ["FP32", "FP32"]
@@ -115,8 +117,8 @@ def test_missing_metadata_falls_back_to_768_points_with_a_warning(tmp_path, capl
     path = tiny_model_builder(tmp_path / "bare.onnx", with_metadata=False)
     with caplog.at_level(logging.WARNING, logger="service.engine"):
         info = OnnxEngine(path).info
-    assert info.native_num_points == 768 and info.name == "ifnet" and info.weights_sha256 is None
-    assert info.min_num_points == 768, "without the record only the native count is known to run"
+    assert info.network_points == 768 and info.name == "ifnet" and info.weights_sha256 is None
+    assert info.min_network_points == 768, "without the record only the native count is known to run"
     assert info.version == info.file_sha256[:12]
     assert "no `num_points` metadata" in caplog.text and "no `min_points` metadata" in caplog.text
 

@@ -24,22 +24,19 @@ torch = pytest.importorskip("torch", reason="the export tests need torch")
 pytest.importorskip("onnx", reason="the export tests need onnx")
 
 from export.onnx_export import (  # noqa: E402
-    DEFAULT_OUTPUT,
-    DEFAULT_WEIGHTS,
     DYNAMIC_AXES,
     ParityReport,
     RegistrationGraph,
     compare_with_torch,
     export_onnx,
     fold_batch_norms,
-    load_checkpoint,
-    ort_session,
 )
+from model.artifacts import DEFAULT_WEIGHTS, SERVED_MODEL, file_sha256, ort_session  # noqa: E402
+from model.checkpoint import load_checkpoint  # noqa: E402
 from model.ifnet import ChannelBatchNorm, IFNet, IFNetConfig, preset  # noqa: E402
 from model.training.data import evaluation_pairs  # noqa: E402
-from service.engine import file_sha256  # noqa: E402
 
-SHIPPED = DEFAULT_WEIGHTS.exists() and DEFAULT_OUTPUT.exists()
+SHIPPED = DEFAULT_WEIGHTS.exists() and SERVED_MODEL.exists()
 
 
 class SingleBlock(torch.nn.Module):
@@ -176,7 +173,7 @@ def test_dynamic_batch_and_point_counts(tmp_path):
 @pytest.mark.skipif(not SHIPPED, reason="no shipped weights and ONNX model in the checkout")
 def test_committed_onnx_matches_committed_weights():
     """Outputs, not bytes: the committed ONNX must compute what the committed weights compute."""
-    session = ort_session(DEFAULT_OUTPUT)
+    session = ort_session(SERVED_MODEL)
     declared = {value.name: value.shape for value in (*session.get_inputs(), *session.get_outputs())}
     assert declared["source"] == ["batch", "n_source", 3] and declared["target"] == ["batch", "n_target", 3]
     assert declared["rotation"] == ["batch", 3, 3] and declared["translation"][0] == "batch"  # README's contract

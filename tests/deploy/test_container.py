@@ -29,7 +29,7 @@ import pytest
 
 pytestmark = pytest.mark.container
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 DOCKER_BASE = ROOT.parent / "shared" / "tools" / "docker-base.sh"
 IMAGE = "ifnet-serve:test"
 LB_IMAGE = "ifnet-serve-lb:test"

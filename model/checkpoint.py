@@ -1,0 +1,48 @@
+"""Reading IFNet weights: shipped weights files and training checkpoints, with their checksum and preset."""
+
+from dataclasses import replace
+from pathlib import Path
+from typing import NamedTuple
+
+from model.cli import UserError, load_torch_file
+from model.artifacts import file_sha256
+from model.ifnet import IFNet, IFNetConfig
+
+
+def read_weights(path: Path, what: str) -> dict:
+    """The state of shipped weights or a training checkpoint (model state and config at least), or a
+    UserError naming `what` (the option or role of the file) and the path."""
+    state = load_torch_file(path, what)
+    if "model" not in state or "config" not in state:
+        raise UserError(f"{what} {path}: not IFNet weights or a training checkpoint (no model state and config)")
+    return state
+
+
+def weights_preset(state: dict) -> str:
+    """The preset a weights file or checkpoint was trained as (checkpoints before the top-level
+    entry kept it only among their arguments); "custom" where neither says."""
+    return state.get("preset") or state.get("args", {}).get("preset") or "custom"
+
+
+class LoadedWeights(NamedTuple):
+    model: IFNet  # in eval mode
+    sha256: str  # of the file
+    preset: str
+
+
+def load_checkpoint(path: Path, iterations: int | None = None, time_steps: int | None = None) -> LoadedWeights:
+    """The model in eval mode from a training checkpoint or shipped weights, the file's sha256 and
+    its preset.
+
+    `iterations` and `time_steps` override the unroll the weights were trained with (`n_iters`
+    blocks per time step, `time_steps` passes with the target features fed back): every block
+    runs the same shared weights, so the weights run at any counts, and the cost grows with
+    their product.
+    """
+    state = read_weights(path, "weights file")
+    config = IFNetConfig.from_dict(state["config"])
+    unroll = {"n_iters": iterations, "time_steps": time_steps}
+    config = replace(config, **{k: v for k, v in unroll.items() if v is not None})  # rejects counts below 1
+    model = IFNet(config)
+    model.load_state_dict(state["model"])
+    return LoadedWeights(model.eval(), file_sha256(path), weights_preset(state))
