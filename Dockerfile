@@ -11,6 +11,8 @@ ARG BASE_IMAGE=debian:bookworm-slim
 
 # ---------------------------------------------------------------- build: venv with the `serve` extra
 FROM ${BASE_IMAGE} AS build
+# Lets a cleanup find this stage's leftover image: `docker image prune --filter label=ifnet-serve.stage=build`.
+LABEL ifnet-serve.stage=build
 
 ENV DEBIAN_FRONTEND=noninteractive \
     PIP_NO_CACHE_DIR=1 \

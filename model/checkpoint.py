@@ -4,8 +4,8 @@ from dataclasses import replace
 from pathlib import Path
 from typing import NamedTuple
 
-from model.cli import UserError, load_torch_file
 from model.artifacts import file_sha256
+from model.cli import UserError, load_torch_file
 from model.ifnet import IFNet, IFNetConfig
 
 

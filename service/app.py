@@ -10,6 +10,7 @@ from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
 from fastapi.openapi.utils import get_openapi
 from fastapi.responses import JSONResponse
+from fastapi_offline import FastAPIOffline
 from pydantic import ValidationError
 from starlette.exceptions import HTTPException as StarletteHTTPException
 from starlette.requests import ClientDisconnect
@@ -202,7 +203,8 @@ def create_app(settings: Settings | None = None, engine: Engine | None = None) -
     """The service as an ASGI app. Without `engine`, the lifespan loads settings.model_path."""
     settings = settings or Settings()
     state = ServiceState(settings)
-    app = FastAPI(title="ifnet-serve", version=__version__, description=DESCRIPTION, lifespan=_lifespan(engine))
+    # /docs and /redoc load Swagger UI and ReDoc from the installed package, never from a CDN.
+    app = FastAPIOffline(title="ifnet-serve", version=__version__, description=DESCRIPTION, lifespan=_lifespan(engine))
     app.state.service = state
     app.include_router(router)
     app.include_router(oip_router)

@@ -17,9 +17,13 @@ value as its h11 limit so that a head spread over several reads meets the same b
 Lingering close: the service answers some requests before reading their body (401, 413 on the
 declared length, 429). When such a connection must close (the client sent `Connection: close`),
 uvicorn closes it at once, and the kernel answers the body still arriving with a reset, which
-most clients report instead of the answer (seen with Python's urllib and a 6 MB body). Here the
-connection first shuts its sending side and reads and drops up to `max_drain_bytes` more for at
-most `drain_timeout_s`, as nginx's lingering close does, so that the client reads the answer.
+most clients report instead of the answer. Here the connection first shuts its sending side and
+reads and drops up to `max_drain_bytes` more for at most `drain_timeout_s`, as nginx's lingering
+close does, so that the client reads the answer.
+
+The subclass reaches into uvicorn's H11Protocol and h11's connection state, which neither
+promises to keep: pyproject.toml pins both to TESTED_VERSIONS, and tests/service/test_security.py
+fails on any other installed version. To upgrade, widen both together once the protocol tests pass.
 """
 
 import asyncio
@@ -31,6 +35,7 @@ from uvicorn.protocols.http.h11_impl import H11Protocol
 from service.settings import Settings
 
 logger = logging.getLogger("service.protocol")
+TESTED_VERSIONS = {"uvicorn": ">=0.55,<0.56", "h11": ">=0.16,<0.17"}
 
 
 def _default(setting: str):

@@ -3,6 +3,7 @@ plain helpers the test modules import: free_port, asgi_scope, service_process.""
 
 import asyncio
 import os
+import shutil
 import socket
 import subprocess
 import sys
@@ -238,3 +239,43 @@ def pipeline_inputs(network_points: int, *, min_points: int = 32, max_cloud_poin
 
     settings = Settings(min_points=min_points, max_cloud_points=max_cloud_points)
     return RegistrationOptions(network_points=network_points, **options), settings
+
+
+CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
+
+
+def rendered_dom(url: str, tmp_path: Path, wait_ms: int = 15_000) -> str:
+    """The page at `url` as headless Chromium renders it (scripts run), with every network request
+    other than the page's own server refused, so a page that needs a CDN renders nothing."""
+    if CHROMIUM is None:
+        pytest.skip("Chromium is not installed (Debian package `chromium`); .ci/run installs it")
+    command = [
+        CHROMIUM,
+        "--headless",
+        "--no-sandbox",
+        "--disable-gpu",
+        "--disable-quic",
+        "--no-first-run",
+        "--disable-background-networking",
+        "--disable-component-update",
+        "--disable-sync",
+        "--host-resolver-rules=MAP * ~NOTFOUND, EXCLUDE 127.0.0.1",
+        f"--user-data-dir={tmp_path / 'chromium-profile'}",
+        f"--virtual-time-budget={wait_ms}",
+        "--dump-dom",
+        url,
+    ]
+    done = subprocess.run(command, capture_output=True, text=True, timeout=120, stdin=subprocess.DEVNULL)
+    assert done.returncode == 0, f"chromium exited {done.returncode}: {done.stderr[-2000:]}"
+    return done.stdout
+
+
+def assert_docs_render(base_url: str, tmp_path: Path) -> None:
+    """/docs (Swagger UI) and /redoc render the API's operations in a browser without internet."""
+    swagger = rendered_dom(f"{base_url}/docs", tmp_path)
+    for path in ("/register", "/health", "/v2/models/{model_name}/infer"):
+        assert f'data-path="{path}"' in swagger, f"Swagger UI did not render {path}"
+    assert "opblock-summary-method" in swagger
+    redoc = rendered_dom(f"{base_url}/redoc", tmp_path)
+    for operation in ("register_register_post", "health_health_get"):
+        assert f'id="operation/{operation}"' in redoc, f"ReDoc did not render {operation}"

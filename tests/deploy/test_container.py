@@ -14,7 +14,6 @@ import json
 import os
 import re
 import shutil
-import socket
 import subprocess
 import sys
 import time
@@ -26,6 +25,7 @@ from pathlib import Path
 import httpx
 import numpy as np
 import pytest
+from conftest import assert_docs_render, free_port
 
 pytestmark = pytest.mark.container
 
@@ -78,12 +78,6 @@ def _docker_answers() -> bool:
         return subprocess.run(["docker", "info"], capture_output=True, timeout=30).returncode == 0
     except subprocess.TimeoutExpired:
         return False
-
-
-def free_port() -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as sock:
-        sock.bind(("127.0.0.1", 0))
-        return sock.getsockname()[1]
 
 
 def container_logs(container_id: str) -> str:
@@ -241,20 +235,29 @@ def docker() -> None:
         pytest.skip(reason)
 
 
+def remove_image(tag: str) -> None:
+    """Removes the tag, the layers only it used and the build stage's leftover: a run leaves no images behind."""
+    run(["docker", "rmi", "-f", tag], timeout=120, check=False)
+    run(["docker", "image", "prune", "-f", "--filter", "label=ifnet-serve.stage=build"], timeout=120, check=False)
+    assert run(["docker", "image", "inspect", tag], timeout=30, check=False).returncode != 0, f"{tag} is still there"
+
+
 @pytest.fixture(scope="module")
-def image(docker) -> str:
+def image(docker) -> Iterator[str]:
     started = time.monotonic()
     run(["docker", "build", "-t", IMAGE, "."], timeout=BUILD_TIMEOUT_S)
     seconds = time.monotonic() - started
     size = int(run(["docker", "image", "inspect", "-f", "{{.Size}}", IMAGE], timeout=30).stdout.strip())
     report(f"built {IMAGE} in {seconds:.0f} s; image size {size / 1e6:.0f} MB (target < {IMAGE_SIZE_TARGET_MB} MB)")
-    return IMAGE
+    yield IMAGE
+    remove_image(IMAGE)
 
 
 @pytest.fixture(scope="module")
-def lb_image(docker) -> str:
+def lb_image(docker) -> Iterator[str]:
     run(["docker", "build", "-t", LB_IMAGE, "-f", "docker/nginx.Dockerfile", "docker"], timeout=BUILD_TIMEOUT_S)
-    return LB_IMAGE
+    yield LB_IMAGE
+    remove_image(LB_IMAGE)
 
 
 @pytest.fixture(scope="module")
@@ -280,6 +283,11 @@ def test_image_registers_known_pair(container):
     _, base_url = container
     answer = check_known_registration(base_url).json()
     report(f"docker run: /register took {answer['timings_ms']['total_ms']:.0f} ms")
+
+
+def test_image_serves_its_docs_offline(container, tmp_path):
+    _, base_url = container
+    assert_docs_render(base_url, tmp_path)
 
 
 def test_image_health_reported_by_docker(container):

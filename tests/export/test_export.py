@@ -86,7 +86,7 @@ def stacked_pairs(batch: int) -> tuple:
 
 
 @pytest.mark.skipif(not DEFAULT_WEIGHTS.exists(), reason="no shipped weights in the checkout")
-@pytest.mark.parametrize("batch", [1, 4])
+@pytest.mark.parametrize("batch", [1, pytest.param(4, marks=pytest.mark.slow)])
 def test_each_block_matches_torch_on_the_same_inputs(tmp_path, batch):
     """On the shipped weights: with random weights one block's float32 noise alone reaches ~1e-3."""
     model = load_checkpoint(DEFAULT_WEIGHTS).model
@@ -170,6 +170,7 @@ def test_dynamic_batch_and_point_counts(tmp_path):
     assert np.abs(translation - out.translation.numpy()).max() <= 1e-3
 
 
+@pytest.mark.slow
 @pytest.mark.skipif(not SHIPPED, reason="no shipped weights and ONNX model in the checkout")
 def test_committed_onnx_matches_committed_weights():
     """Outputs, not bytes: the committed ONNX must compute what the committed weights compute."""

@@ -115,7 +115,7 @@ def test_neighbourhood_sum_equals_adjacency_products():
 
 
 @pytest.mark.parametrize("batch", [1, 4])
-@pytest.mark.parametrize("n", [512, 768, 1024])
+@pytest.mark.parametrize("n", [512, 768, pytest.param(1024, marks=pytest.mark.slow)])
 def test_shapes_dtypes_and_proper_rotations(batch, n):
     torch.manual_seed(0)
     model = IFNet(TINY).eval()
@@ -130,6 +130,7 @@ def test_shapes_dtypes_and_proper_rotations(batch, n):
     assert_proper_rotations(out.rotation)
 
 
+@pytest.mark.slow
 def test_source_and_target_may_differ_in_size():
     model = IFNet(TINY).eval()
     source, _ = random_clouds(2, 600)
@@ -152,6 +153,7 @@ def test_output_is_the_composition_of_the_last_time_step():
     assert torch.allclose(transform_points(source, out.rotation, out.translation), moved, atol=1e-5)
 
 
+@pytest.mark.slow
 def test_rotations_valid_for_degenerate_inputs():
     """Planar, collinear and nearly coincident clouds still give proper rotations, no NaN."""
     model = IFNet(TINY).eval()
@@ -166,6 +168,7 @@ def test_rotations_valid_for_degenerate_inputs():
         assert_proper_rotations(out.rotation)
 
 
+@pytest.mark.slow
 def test_gradients_reach_every_parameter():
     torch.manual_seed(0)
     model = IFNet(TINY).train()

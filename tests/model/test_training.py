@@ -269,6 +269,7 @@ def shipped_model_errors(pairs: list[dict]) -> tuple[np.ndarray, np.ndarray]:
     return errors["rotation_deg"], errors["translation"]
 
 
+@pytest.mark.slow
 @pytest.mark.skipif(not DEFAULT_WEIGHTS.exists(), reason="no shipped weights in the checkout")
 def test_shipped_weights_register_generated_pairs():
     """Accuracy smoke test on 8 protocol pairs of synthetic shapes (needs no data).
@@ -291,6 +292,7 @@ def test_shipped_weights_register_generated_pairs():
     assert np.median(rotation_deg) < 0.5, rotation_deg
 
 
+@pytest.mark.slow
 @pytest.mark.skipif(not DEFAULT_WEIGHTS.exists(), reason="no shipped weights in the checkout")
 def test_shipped_weights_register_modelnet_test_pairs():
     """8 protocol pairs of ModelNet10 test shapes (skipped without ../shared/data).
@@ -309,6 +311,7 @@ def test_shipped_weights_register_modelnet_test_pairs():
     assert np.median(rotation_deg) < 0.3, rotation_deg
 
 
+@pytest.mark.slow
 def test_fine_tuning_starts_from_the_given_weights_on_noisy_pairs(tmp_path, shapes):
     start = save_random_network(tmp_path / "start.pt", seed=123)
     train_briefly(tmp_path, shapes, "--max-steps", "1", "--lr", "1e-9", "--init-weights", str(tmp_path / "start.pt"))
@@ -318,6 +321,7 @@ def test_fine_tuning_starts_from_the_given_weights_on_noisy_pairs(tmp_path, shap
             torch.testing.assert_close(tuned[name], value, atol=1e-6, rtol=0, msg=name)
 
 
+@pytest.mark.slow
 def test_evaluation_reports_the_network_and_its_icp_refinement(tmp_path, shapes):
     from model.artifacts import SERVED_MODEL
     from model.training.evaluate import main as evaluate_main

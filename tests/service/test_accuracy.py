@@ -77,6 +77,7 @@ async def register_protocol_motion(serve, model, source: np.ndarray, target: np.
     )
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("scan", ["pcl_bunny_view0", "kitti_000008_fov"])
 async def test_the_trained_network_registers_real_scans(serve, shipped_model, real_scans, scan):
     """The training protocol's motion (Euler angles in [0, 45] degrees) applied to a real scan.
@@ -95,6 +96,7 @@ async def test_the_trained_network_registers_real_scans(serve, shipped_model, re
     assert translation_error < 1e-3 * radius(source)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("scan", ["scannet_scene0000_00", "sunrgbd_000017"])
 async def test_the_trained_network_registers_a_scene_scanned_twice(serve, shipped_model, real_scans, scan):
     """Two disjoint random halves of a real scan, the second moved by the protocol's motion: two
