@@ -33,7 +33,7 @@ RUN find /tmp/extra-ca -maxdepth 1 -name '*.crt' -exec cp {} /usr/local/share/ca
 # Dependencies first (the project's runtime deps plus the `serve` extra, read from pyproject.toml),
 # so that changes to the service code do not reinstall them. Not needed at run time, so removed:
 # pip, the libraries' test suites, ONNX Runtime's model-conversion tooling and its C-API library
-# (libonnxruntime.so, 35 MB: the Python binding is self-contained and never loads it). Bytecode
+# (libonnxruntime.so: the Python binding is self-contained and never loads it). Bytecode
 # is compiled here because the runtime user cannot write it; for SciPy (large, mostly unused)
 # only the modules the service imports are compiled, in the runtime stage.
 COPY pyproject.toml /src/pyproject.toml

@@ -153,8 +153,8 @@ def geometry_descriptor(points: Tensor, nearest_two: Tensor) -> Tensor:
 def softmax_weighted_sum(logits: Tensor, values: Tensor, dim: int) -> Tensor:
     """sum(softmax(logits, dim) * values, dim), with the softmax written out.
 
-    ONNX Runtime's Softmax on an axis other than the last transposes its input there and back:
-    over the few neighbours of a [B, N, k, C] tensor that took 2.6x as long as these five operators.
+    ONNX Runtime's Softmax on an axis other than the last transposes its input there and back,
+    which costs more than these five operators over the few neighbours of a [B, N, k, C] tensor.
     """
     scores = torch.exp(logits - logits.amax(dim=dim, keepdim=True))
     return (scores * values).sum(dim=dim) / scores.sum(dim=dim)

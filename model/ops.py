@@ -7,8 +7,8 @@ ONNX (no SVD, no eigh, no data-dependent Python control flow).
 import torch
 from torch import Tensor
 
-# Trace-normalised squarings of Horn's 4x4 matrix. 8 leave errors of degrees on hard cases; 16
-# still miss nearly collinear clouds (eigen-gap ~1e-5); 20 converge on every case in the tests.
+# Trace-normalised squarings of Horn's 4x4 matrix: the fewest that converge on every hard case in
+# tests/model/test_procrustes.py (nearly collinear clouds have tiny eigen-gaps).
 QUATERNION_SQUARINGS = 20
 _TINY = 1e-12
 
@@ -55,9 +55,8 @@ def fused_knn(points: Tensor, own_neighbours: Tensor, own_sq_distances: Tensor, 
 def gather_rows(x: Tensor, idx: Tensor) -> Tensor:
     """Rows of x [B, M, C] picked by idx [B, ...] -> [B, ..., C], e.g. idx [B, N, k] -> [B, N, k, C].
 
-    Indexes the flattened [B * M, C] rows, which exports as one ONNX Gather of whole rows; with
-    torch.gather (GatherElements on an index expanded to every channel) a call of the served model
-    took 19-34% longer in ONNX Runtime (bench/compare_models.py).
+    Indexes the flattened [B * M, C] rows, which exports as one ONNX Gather of whole rows: cheaper
+    in ONNX Runtime than torch.gather's GatherElements on an index expanded to every channel.
     """
     batch, m, channels = x.shape
     offset = torch.arange(batch, device=x.device).view(-1, *[1] * (idx.dim() - 1)) * m
