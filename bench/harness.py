@@ -166,6 +166,11 @@ class Pair:
     translation: np.ndarray
     voxel: float  # the peers' voxel size for this kind of data
 
+    def __post_init__(self):
+        # Every method gets the float32 coordinates that the NPZ request body carries.
+        self.source = self.source.astype(np.float32).astype(np.float64)
+        self.target = self.target.astype(np.float32).astype(np.float64)
+
     @property
     def extent(self) -> float:
         return float(np.linalg.norm(self.source.max(axis=0) - self.source.min(axis=0)))
