@@ -1,0 +1,233 @@
+"""The network, the service and the classical peers on the same pairs, interleaved pair by pair.
+
+    python -m bench.compare peers                      # ModelNet10 and real-scan pairs -> docs/benchmarks/compare.json
+    python -m bench.compare peers --modelnet same:jitter unseen:clean:so3 --scans lidar_scans/NAME
+    python -m bench.compare peers --request auto='{"method": "auto", "refine": true}'   # one more service row
+    python -m bench.compare models /tmp/earlier.onnx service/models/ifnet.onnx        # two ONNX files' calls
+
+Every method meets every pair, in an order rotated from pair to pair; a method's time is read as
+its per-pair ratio to each peer (median over the pairs), since the machine's speed drifts.
+"""
+
+import argparse
+import json
+import statistics
+import sys
+import time
+from pathlib import Path
+
+import httpx
+import numpy as np
+
+from bench import harness
+
+DEFAULT_SCANS = (
+    "real_scans/pcl_office1",
+    "real_scans/pcl_table_scene_mug",
+    "real_scans/sunrgbd_000017",
+    "real_scans/nuscenes_lidar_top",
+    "lidar_scans/semantickitti__semkitti-seq08__000750",
+    "indoor_scans/pcl__pcl-room__room_scan1",
+)
+DEFAULT_REQUESTS = ("service={}", 'service+refine={"refine": true}')
+PEERS = ("open3d", "kiss")
+
+
+def timed(function, *args, **kwargs):
+    started = time.perf_counter()
+    result = function(*args, **kwargs)
+    return result, 1000.0 * (time.perf_counter() - started)
+
+
+class Methods:
+    """Each method maps a pair to {ms, rotation_deg, translation, right, ...}; inputs are prepared untimed."""
+
+    def __init__(self, args, service: harness.Service):
+        self.network = harness.Network(args.model, args.threads)
+        self.client = httpx.Client(base_url=service.url, timeout=600, trust_env=False)
+        self.requests = dict(spec.split("=", 1) for spec in args.request)
+        self.tight_max_points = args.tight_max_points
+        self.names = ["network", *self.requests, *PEERS, "open3d-tight"]
+
+    def run(self, name: str, pair: harness.Pair, prepared: dict) -> dict | None:
+        if name == "network":
+            feeds, normalisation = prepared["feeds"]
+            (rotation, translation), ms = timed(self.network.call, feeds)
+            return {"ms": ms, **harness.errors(pair, *self.network.to_user_units(normalisation, rotation, translation))}
+        if name in self.requests:
+            return self.request(pair, prepared["body"], self.requests[name])
+        if name == "open3d-tight":
+            if max(len(pair.source), len(pair.target)) > self.tight_max_points:
+                return None
+            (rotation, translation), ms = timed(
+                harness.open3d_fpfh_ransac_icp, pair.source, pair.target, pair.voxel, True
+            )
+        else:
+            peer = harness.open3d_fpfh_ransac_icp if name == "open3d" else harness.kiss_matcher_gicp
+            (rotation, translation), ms = timed(peer, pair.source, pair.target, pair.voxel)
+        return {"ms": ms, **harness.errors(pair, rotation, translation)}
+
+    def request(self, pair: harness.Pair, body: bytes, options: str) -> dict:
+        headers = {"content-type": "application/x-npz"}
+        response, ms = timed(self.client.post, "/register", params={"options": options}, content=body, headers=headers)
+        if response.status_code != 200:
+            return {"ms": ms, "status": response.status_code, "right": False, "error": response.text[:300]}
+        answer = response.json()
+        row = {"ms": ms, "status": 200, **harness.errors(pair, np.array(answer["rotation"]), answer["translation"])}
+        row["timings_ms"] = answer.get("timings_ms")
+        row |= {key: answer[key] for key in ("verified", "stage", "reason", "fitness") if key in answer}
+        return row
+
+
+def summary(pairs: list[dict], names: list[str]) -> dict:
+    result = {}
+    for name in names:
+        rows = [(pair["results"][name], pair["results"]) for pair in pairs if pair["results"].get(name)]
+        if not rows:
+            continue
+        done = [row for row, _ in rows if "rotation_deg" in row]
+        ratios = {
+            peer: statistics.median(row["ms"] / others[peer]["ms"] for row, others in rows)
+            for peer in PEERS
+            if all(others.get(peer) for _, others in rows)
+        }
+        result[name] = {
+            "pairs": len(rows),
+            "recall": sum(row["right"] for row, _ in rows) / len(rows),
+            "median_rotation_deg": statistics.median(row["rotation_deg"] for row in done) if done else None,
+            "median_translation": statistics.median(row["translation"] for row in done) if done else None,
+            "failed_requests": sum(row.get("status", 200) != 200 for row, _ in rows),
+            "verified": sum(row.get("verified") is True for row, _ in rows)
+            if any("verified" in r for r, _ in rows)
+            else None,
+            "wrong_verified": sum(row.get("verified") is True and not row["right"] for row, _ in rows),
+            "median_ms": statistics.median(row["ms"] for row, _ in rows),
+            "ratio_to": ratios,
+        }
+    return result
+
+
+def run_set(methods: Methods, pairs: list[harness.Pair], rotation_start: int) -> list[dict]:
+    rows = []
+    for index, pair in enumerate(pairs):
+        prepared = {
+            "feeds": methods.network.prepare(pair.source, pair.target),
+            "body": harness.npz_body(pair.source, pair.target),
+        }
+        shift = (rotation_start + index) % len(methods.names)
+        results = {}
+        for name in methods.names[shift:] + methods.names[:shift]:
+            results[name] = methods.run(name, pair, prepared)
+        rows.append(
+            {
+                "pair": pair.name,
+                "points": [len(pair.source), len(pair.target)],
+                "extent": pair.extent,
+                "voxel": pair.voxel,
+                "results": results,
+            }
+        )
+        print(
+            f"{pair.name:58s} {len(pair.source):>7d}/{len(pair.target):<7d} "
+            + "  ".join(
+                f"{name} {row['ms']:.0f} ms {row.get('rotation_deg', float('nan')):.2f} deg"
+                for name, row in results.items()
+                if row
+            ),
+            flush=True,
+        )
+    return rows
+
+
+def peers(args) -> int:
+    sets: dict[str, list[harness.Pair]] = {}
+    for spec in args.modelnet:
+        split, noise, *rest = spec.split(":")
+        sets[f"ModelNet {spec}"] = harness.modelnet_pairs(
+            args.modelnet_pairs, split, noise, so3=rest == ["so3"], seed=args.seed
+        )
+    if args.scans:
+        sets["real scans"] = [harness.scan_pair(spec, args.seed, max_angle_deg=args.scan_angle) for spec in args.scans]
+    with harness.Service() as service:
+        methods = Methods(args, service)
+        warm = next(iter(sets.values()))[0]
+        prepared = {
+            "feeds": methods.network.prepare(warm.source, warm.target),
+            "body": harness.npz_body(warm.source, warm.target),
+        }
+        for name in methods.names:  # first calls, imports and connections, unmeasured
+            methods.run(name, warm, prepared)
+        record = {
+            **harness.run_header(),
+            "model": service.model(),
+            "threads": args.threads,
+            "requests": methods.requests,
+            "scan_angle_deg": args.scan_angle,
+        }
+        record["right"] = {
+            "rotation_deg": harness.RIGHT_ROTATION_DEG,
+            "translation_share_of_extent": harness.RIGHT_TRANSLATION_SHARE,
+        }
+        record["sets"] = {}
+        for offset, (set_name, pairs) in enumerate(sets.items()):
+            rows = run_set(methods, pairs, offset)
+            record["sets"][set_name] = {"summary": summary(rows, methods.names), "pairs": rows}
+            for name, s in record["sets"][set_name]["summary"].items():
+                ratios = "  ".join(f"{s['ratio_to'][peer]:.2f}x {peer}" for peer in s["ratio_to"])
+                median = s["median_rotation_deg"] or float("nan")
+                print(f"{set_name}: {name:16s} recall {s['recall']:.2f}  median {median:.3g} deg  {ratios}")
+    harness.write_record(args.out, record)
+    return 0
+
+
+def models(args) -> int:
+    """Calls of two or more ONNX files in turn on the same ModelNet pair; medians and ratios to the first."""
+    networks = [harness.Network(path, args.threads) for path in args.models]
+    pair = harness.modelnet_pairs(1)[0]
+    feeds = [network.prepare(pair.source, pair.target)[0] for network in networks]
+    for network, feed in zip(networks, feeds, strict=True):
+        network.call(feed)
+    ms = np.zeros((args.rounds, len(networks)))
+    for r in range(args.rounds):
+        for i in np.roll(np.arange(len(networks)), r):
+            ms[r, i] = timed(networks[i].call, feeds[i])[1]
+    medians = np.median(ms, axis=0)
+    for path, median, per_round in zip(args.models, medians, (ms / ms[:, :1]).T, strict=True):
+        print(f"{median:8.1f} ms  {median / medians[0]:.2f}x the first (per round {np.median(per_round):.2f}x)  {path}")
+    return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--threads", type=int, default=2, help="ONNX Runtime threads of the network call alone")
+    commands = parser.add_subparsers(dest="command", required=True)
+    p = commands.add_parser("peers", help="network, service requests and classical peers on the same pairs")
+    p.add_argument("--model", type=Path, default=harness.MODEL, help="ONNX file of the network-alone row")
+    p.add_argument(
+        "--modelnet", nargs="*", default=["same:clean"], help="split:noise[:so3] sets of the paper's protocol"
+    )
+    p.add_argument("--modelnet-pairs", type=int, default=25)
+    p.add_argument("--scans", nargs="*", default=list(DEFAULT_SCANS), help="archive/name of scans in the shared data")
+    p.add_argument("--scan-angle", type=float, default=30.0, help="largest rotation of a scan pair, degrees")
+    p.add_argument("--request", action="append", default=None, help="NAME=JSON options: one service row each")
+    p.add_argument("--tight-max-points", type=int, default=5000, help="open3d-tight only on pairs this small")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--out", type=Path, default=harness.RESULTS / "compare.json")
+    m = commands.add_parser("models", help="the model call of ONNX files interleaved")
+    m.add_argument("models", type=Path, nargs="+")
+    m.add_argument("--rounds", type=int, default=40)
+    args = parser.parse_args(argv)
+    if args.command == "peers":
+        args.request = args.request or list(DEFAULT_REQUESTS)
+        for spec in args.request:
+            name, _, options = spec.partition("=")
+            if not name or not isinstance(json.loads(options or "null"), dict):
+                parser.error(f"--request {spec!r}: give NAME=JSON-object")
+        return peers(args)
+    if len(args.models) < 2:
+        parser.error("give at least two ONNX files")
+    return models(args)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
