@@ -25,7 +25,7 @@ Sampling = Literal["fps", "random"]
 
 def _example_pair() -> tuple[list[list[float]], list[list[float]], list[list[float]]]:
     """A small table (48 points: a top and two legs of different sizes) and the same table turned 30
-    degrees about z and shifted. No symmetry, so the transform is unique (tests/test_service_accuracy.py
+    degrees about z and shifted. No symmetry, so the transform is unique (tests/service/test_accuracy.py
     registers it with the shipped model)."""
     rng = np.random.default_rng(0)
     top, long_leg, short_leg = (  # boxes as (centre, half-size)

@@ -1,9 +1,9 @@
 """Faults: a bad model file, a pair timing out inside a running batch, clients that vanish.
 
-Related checks elsewhere (not repeated here): a missing model file (test_service_process.py and
-test_service_engine.py), a queued pair timing out (504) and a queued client disconnecting (499)
-in test_service_batching.py, SIGTERM with four requests in flight in test_service_process.py,
-and SIGTERM under sustained overload in bench/bench_overload.py.
+Related checks elsewhere (not repeated here): a missing model file (test_process.py and
+test_engine.py), a queued pair timing out (504) and a queued client disconnecting (499)
+in test_batching.py, SIGTERM with four requests in flight in test_process.py,
+and SIGTERM under sustained overload in `python -m bench.load overload`.
 """
 
 import asyncio

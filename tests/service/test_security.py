@@ -10,8 +10,8 @@
 - A connection that does not complete a request head in time (silent, or trickling its headers,
   slowloris) is closed; the body's own time is bounded by the request timeout instead.
 
-Related checks elsewhere: basic 401/413 behaviour in test_service_api.py, the reader-level
-pickle refusal in test_service_formats.py, the non-root container in test_container.py.
+Related checks elsewhere: basic 401/413 behaviour in test_api.py, the reader-level
+pickle refusal in test_formats.py, the non-root container in test_container.py.
 """
 
 import asyncio
