@@ -10,6 +10,7 @@ import copy
 import datetime as dt
 import json
 import time
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -89,7 +90,10 @@ def export_onnx(
     # left in training mode would put the model's BatchNorms back into training mode.
     module.eval()
     started = time.perf_counter()
-    with torch.no_grad():
+    # The TorchScript exporter is the deliberate choice (above): its deprecation notices say nothing new.
+    with torch.no_grad(), warnings.catch_warnings():
+        warnings.filterwarnings("ignore", "You are using the legacy TorchScript-based ONNX export", DeprecationWarning)
+        warnings.filterwarnings("ignore", "The feature will be removed", DeprecationWarning)
         torch.onnx.export(
             module,
             example,

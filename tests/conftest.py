@@ -279,3 +279,23 @@ def assert_docs_render(base_url: str, tmp_path: Path) -> None:
     redoc = rendered_dom(f"{base_url}/redoc", tmp_path)
     for operation in ("register_register_post", "health_health_get"):
         assert f'id="operation/{operation}"' in redoc, f"ReDoc did not render {operation}"
+
+
+def vanishing_request(app, body: bytes) -> tuple[asyncio.Future, asyncio.Event, list[dict]]:
+    """A raw ASGI POST /register of a JSON body whose client goes away once `gone` is set:
+    (the running request, gone, the messages the app sent)."""
+    messages = [{"type": "http.request", "body": body, "more_body": False}]
+    gone = asyncio.Event()
+    sent: list[dict] = []
+
+    async def receive():
+        if messages:
+            return messages.pop(0)
+        await gone.wait()
+        return {"type": "http.disconnect"}
+
+    async def send(message):
+        sent.append(message)
+
+    scope = asgi_scope("/register", {"content-type": "application/json", "content-length": str(len(body))})
+    return asyncio.ensure_future(app(scope, receive, send)), gone, sent

@@ -9,13 +9,14 @@ No Docker or cluster is needed.
 """
 
 import ast
+import asyncio
 import importlib.util
 import re
 from pathlib import Path
 
+import httpx
 import pytest
 import yaml
-from fastapi.testclient import TestClient
 
 from service.app import create_app
 from service.settings import Settings
@@ -49,10 +50,24 @@ def get_routes(openapi_paths) -> set[str]:
     return {path for path, operations in openapi_paths.items() if "get" in operations}
 
 
+class NotLoaded:
+    """GETs against the app before its lifespan has run: no model loaded, exactly as while a pod starts."""
+
+    def __init__(self, app):
+        self.app = app
+
+    def get(self, path: str) -> httpx.Response:
+        async def get() -> httpx.Response:
+            transport = httpx.ASGITransport(app=self.app)  # runs no lifespan
+            async with httpx.AsyncClient(transport=transport, base_url="http://testserver") as client:
+                return await client.get(path)
+
+        return asyncio.run(get())
+
+
 @pytest.fixture(scope="module")
-def not_loaded(app) -> TestClient:
-    """The app before its lifespan has run: no model loaded, exactly as while a pod starts."""
-    return TestClient(app)
+def not_loaded(app) -> NotLoaded:
+    return NotLoaded(app)
 
 
 def setting_variables() -> set[str]:

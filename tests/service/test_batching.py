@@ -12,7 +12,7 @@ import time
 
 import numpy as np
 import pytest
-from conftest import asgi_scope, pipeline_inputs
+from conftest import pipeline_inputs, vanishing_request
 from prometheus_client.parser import text_string_to_metric_families
 
 from service.batcher import (
@@ -219,22 +219,7 @@ async def test_a_client_that_disconnects_does_not_poison_the_batch(serve, tiny_m
         await wait_until(lambda: engine.entered.is_set(), "first call at the gate")
 
         # A raw ASGI request whose client goes away while its pair waits in the queue.
-        body = json.dumps(payload(1)).encode()
-        messages = [{"type": "http.request", "body": body, "more_body": False}]
-        gone = asyncio.Event()
-        sent = []
-
-        async def receive():
-            if messages:
-                return messages.pop(0)
-            await gone.wait()
-            return {"type": "http.disconnect"}
-
-        async def send(message):
-            sent.append(message)
-
-        scope = asgi_scope("/register", {"content-type": "application/json", "content-length": str(len(body))})
-        leaving = asyncio.ensure_future(app(scope, receive, send))
+        leaving, gone, sent = vanishing_request(app, json.dumps(payload(1)).encode())
         queued_behind = asyncio.ensure_future(client.post("/register", json=payload(2)))
         await wait_until(lambda: batcher.queue_depth == 2, "two pairs queued")
         gone.set()

@@ -20,7 +20,7 @@ from pathlib import Path
 import httpx
 import numpy as np
 import pytest
-from conftest import asgi_scope, free_port, register_head, service_process
+from conftest import free_port, register_head, service_process, vanishing_request
 
 from service.batcher import MicroBatcher, RequestTimeoutError
 from service.engine import OnnxEngine
@@ -186,22 +186,7 @@ async def test_a_client_leaving_while_its_batch_runs_leaves_no_stuck_work(serve,
         blocker = asyncio.ensure_future(client.post("/register", content=payload(0), headers=JSON))
         await wait_until(lambda: engine.calls == [1], "first call running")
 
-        body = payload(1)
-        gone = asyncio.Event()
-        messages = [{"type": "http.request", "body": body, "more_body": False}]
-        sent: list[dict] = []
-
-        async def receive():
-            if messages:
-                return messages.pop(0)
-            await gone.wait()
-            return {"type": "http.disconnect"}
-
-        async def send(message):
-            sent.append(message)
-
-        scope = asgi_scope("/register", {"content-type": "application/json", "content-length": str(len(body))})
-        leaving = asyncio.ensure_future(app(scope, receive, send))
+        leaving, gone, sent = vanishing_request(app, payload(1))
         staying = asyncio.ensure_future(client.post("/register", content=payload(2), headers=JSON))
         await wait_until(lambda: state.batcher.queue_depth == 2, "two pairs queued")
         engine.gates[0].set()
