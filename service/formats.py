@@ -422,17 +422,14 @@ def _npy_array(stream, field: str, check_shape: Callable[[tuple[int, ...]], None
         raise InvalidInput(field, f"unreadable NPY header: shape {list(shape)[:8]}")
     check_shape(shape)
     size = math.prod(shape) * dtype.itemsize  # Python integers: no wrap-around
-    buffer = bytearray(size)
-    view = memoryview(buffer)
-    filled = 0
-    while filled < size:
-        chunk = stream.read(min(READ_CHUNK_BYTES, size - filled))
+    buffer = bytearray()  # grown as the data arrives, so a header's claim alone allocates nothing
+    while len(buffer) < size:
+        chunk = stream.read(min(READ_CHUNK_BYTES, size - len(buffer)))
         if not chunk:
             raise InvalidInput(
-                field, f"unreadable NPY file: its data ends after {filled} of the {size} bytes its header declares"
+                field, f"unreadable NPY file: its data ends after {len(buffer)} of the {size} bytes its header declares"
             )
-        view[filled : filled + len(chunk)] = chunk
-        filled += len(chunk)
+        buffer += chunk
     if exact_end and stream.read(1):
         raise InvalidInput(field, f"unreadable NPY file: it holds more than the {size} data bytes its header declares")
     array = np.frombuffer(buffer, dtype=dtype)
