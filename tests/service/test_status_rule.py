@@ -55,6 +55,7 @@ async def test_one_request_of_each_kind_gets_its_status(serve, tiny_model, gated
         statuses["file format"] = await client.post("/register", files={"source": b"x y z", "target": b"x y z"})
 
         gated.gate.clear()  # one request holds the only slot
+        gated.entered.clear()  # set by the warm-up's model calls
         held = asyncio.ensure_future(client.post("/register", json=PAIR))
         await asyncio.to_thread(gated.entered.wait, 10)
         statuses["full"] = await client.post("/register", json=PAIR)
