@@ -4,6 +4,8 @@ Conventions: points are [N, 3] (or [B, N, 3]) arrays; a rigid transform maps sou
 target ~ source @ R.T + t; 4x4 matrices are homogeneous [[R, t], [0, 1]].
 """
 
+import time
+
 import numpy as np
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
@@ -242,26 +244,55 @@ def icp_refine(
     translation: np.ndarray,
     max_distance: float,
     max_iterations: int = 30,
+    max_points: int | None = None,
+    max_seconds: float | None = None,
 ) -> tuple[np.ndarray, np.ndarray, int]:
     """Point-to-point ICP (small_gicp) on the full clouds, starting from (rotation, translation).
 
     max_distance bounds the correspondence distance, in the clouds' units. Returns the refined
     (R, t) and the number of iterations run.
+
+    small_gicp holds the interpreter lock while it runs, so a caller that shares the process with
+    other work (the service) bounds it: `max_points` runs ICP on a seeded random subset of each
+    larger cloud, and the iterations run a few at a time, between which other threads get the
+    lock and after which `max_seconds` (if given) may end the refinement early.
     """
     import small_gicp  # imported here so that the rest of this module needs only numpy/scipy
 
+    if max_points is not None:
+        source, target = (_subset(cloud, max_points) for cloud in (source, target))
     target_cloud = small_gicp.PointCloud(np.ascontiguousarray(target, dtype=np.float64))
     source_cloud = small_gicp.PointCloud(np.ascontiguousarray(source, dtype=np.float64))
-    result = small_gicp.align(
-        target_cloud,
-        source_cloud,
-        small_gicp.KdTree(target_cloud),
-        init_T_target_source=to_matrix(rotation, translation),
-        registration_type="ICP",
-        max_correspondence_distance=max_distance,
-        max_iterations=max_iterations,
-        rotation_epsilon=1e-5,
-        translation_epsilon=1e-6 * max_distance,
-    )
-    refined_rotation, refined_translation = from_matrix(np.asarray(result.T_target_source))
-    return refined_rotation, refined_translation, int(result.iterations)
+    tree = small_gicp.KdTree(target_cloud)
+    # One call for plain use; a few iterations per call where the caller needs the lock back often.
+    step = max_iterations if max_points is None and max_seconds is None else ICP_ITERATIONS_PER_CALL
+    transform = to_matrix(rotation, translation)
+    steps = 0  # small_gicp numbers its steps from 0 and reports the last one's number
+    started = time.perf_counter()
+    while steps < max_iterations:
+        result = small_gicp.align(
+            target_cloud,
+            source_cloud,
+            tree,
+            init_T_target_source=transform,
+            registration_type="ICP",
+            max_correspondence_distance=max_distance,
+            max_iterations=min(step, max_iterations - steps),
+            rotation_epsilon=1e-5,
+            translation_epsilon=1e-6 * max_distance,
+        )
+        transform = np.asarray(result.T_target_source)
+        steps += int(result.iterations) + 1
+        if result.converged or (max_seconds is not None and time.perf_counter() - started > max_seconds):
+            break
+    refined_rotation, refined_translation = from_matrix(transform)
+    return refined_rotation, refined_translation, steps - 1
+
+
+ICP_ITERATIONS_PER_CALL = 2
+
+
+def _subset(points: np.ndarray, count: int) -> np.ndarray:
+    if len(points) <= count:
+        return points
+    return points[np.sort(np.random.default_rng(0).choice(len(points), size=count, replace=False))]

@@ -20,7 +20,14 @@ from service.batcher import InferenceError, MicroBatcher, QueueFullError, Reques
 from service.engine import Engine, OnnxEngine
 from service.formats import UnsupportedFormat
 from service.metrics import HttpMetricsMiddleware
-from service.middleware import BodyLimitMiddleware, ContentEncodingMiddleware, RequestIdMiddleware, request_id
+from service.middleware import (
+    ApiKeyMiddleware,
+    BodyLimitMiddleware,
+    ContentEncodingMiddleware,
+    RequestIdMiddleware,
+    body_received,
+    request_id,
+)
 from service.oip import router as oip_router
 from service.registration import ClientDisconnected, RegistrationFailed
 from service.routes import router
@@ -146,6 +153,10 @@ def _install_error_handlers(app: FastAPI) -> None:
 
     @app.exception_handler(RequestTimeoutError)
     async def on_timeout(request: Request, error: RequestTimeoutError) -> JSONResponse:
+        if not body_received(request.scope):  # the client was too slow, not the service
+            timeout = request.app.state.service.settings.request_timeout_s
+            detail = f"body: not received within the request timeout of {timeout:g} s; send the whole body at once"
+            return _error(request, 408, detail, [{"field": "body", "problem": detail[6:]}], {"Connection": "close"})
         return _error(request, 504, str(error))
 
     @app.exception_handler(ShuttingDownError)
@@ -203,8 +214,15 @@ def create_app(settings: Settings | None = None, engine: Engine | None = None) -
     """The service as an ASGI app. Without `engine`, the lifespan loads settings.model_path."""
     settings = settings or Settings()
     state = ServiceState(settings)
-    # /docs and /redoc load Swagger UI and ReDoc from the installed package, never from a CDN.
-    app = FastAPIOffline(title="ifnet-serve", version=__version__, description=DESCRIPTION, lifespan=_lifespan(engine))
+    # /docs and /redoc load Swagger UI and ReDoc from the installed package, never from a CDN; no
+    # trailing-slash redirects, whose Location would be built from the client's Host header.
+    app = FastAPIOffline(
+        title="ifnet-serve",
+        version=__version__,
+        description=DESCRIPTION,
+        lifespan=_lifespan(engine),
+        redirect_slashes=False,
+    )
     app.state.service = state
     app.include_router(router)
     app.include_router(oip_router)
@@ -214,6 +232,8 @@ def create_app(settings: Settings | None = None, engine: Engine | None = None) -
     # bytes on the wire, the inflater (inside it) the bytes a compressed body expands to.
     app.add_middleware(ContentEncodingMiddleware, max_bytes=settings.max_body_bytes)
     app.add_middleware(BodyLimitMiddleware, max_bytes=settings.max_body_bytes)
+    if settings.api_key is not None and settings.api_key_scope == "all":
+        app.add_middleware(ApiKeyMiddleware, api_key=settings.api_key.get_secret_value())
     static_routes = {route.path for route in (*router.routes, *oip_router.routes) if "{" not in route.path}
     app.add_middleware(
         HttpMetricsMiddleware,

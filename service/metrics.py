@@ -7,6 +7,8 @@ import numpy as np
 from prometheus_client import CONTENT_TYPE_LATEST, CollectorRegistry, Counter, Gauge, Histogram, Info, generate_latest
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
+# Methods labelled by name; any other (clients may send made-up ones) is counted as "other".
+HTTP_METHODS = frozenset({"GET", "HEAD", "POST", "PUT", "DELETE", "OPTIONS", "PATCH", "TRACE", "CONNECT"})
 LATENCY_BUCKETS = (0.01, 0.025, 0.05, 0.075, 0.1, 0.15, 0.2, 0.3, 0.5, 0.75, 1.0, 2.0, 5.0, 10.0, 30.0)
 
 
@@ -80,7 +82,8 @@ class HttpMetricsMiddleware:
     """Counts every HTTP response by route template and status, and times it.
 
     Routes are labelled by their template (/v2/models/{model_name}/infer), never the raw path,
-    so that the label set stays small whatever clients send. Requests that match the
+    and methods by name only for the standard ones, so that the label set stays small whatever
+    clients send. Requests that match the
     `windowed_routes` and succeed also feed the /health latency window.
     """
 
@@ -116,7 +119,8 @@ class HttpMetricsMiddleware:
         finally:
             route = self._route_template(scope)
             elapsed = time.perf_counter() - started
-            self.metrics.requests.labels(scope["method"], route, str(status)).inc()
+            method = scope["method"] if scope["method"] in HTTP_METHODS else "other"
+            self.metrics.requests.labels(method, route, str(status)).inc()
             self.metrics.request_latency.labels(route).observe(elapsed)
             if route in self.windowed_routes and 200 <= status < 300:
                 self.window.add(elapsed)

@@ -1,7 +1,9 @@
-"""ASGI middleware: request ids, the body size limit (before and while reading), compressed bodies."""
+"""ASGI middleware: request ids, the API key beyond inference, the body size limit (before and while
+reading), compressed bodies."""
 
 import json
 import re
+import secrets
 import uuid
 import zlib
 
@@ -45,6 +47,11 @@ def request_id(scope: Scope) -> str | None:
     return (scope.get("state") or {}).get("request_id")
 
 
+def body_received(scope: Scope) -> bool:
+    """Whether the whole request body has arrived (as BodyLimitMiddleware saw it)."""
+    return bool((scope.get("state") or {}).get("body_received"))
+
+
 class BodyTooLarge(HTTPException):
     def __init__(self, limit: int):
         super().__init__(413, f"body: request body is larger than the limit of {limit} bytes; send fewer points")
@@ -54,7 +61,9 @@ class BodyLimitMiddleware:
     """Answers 413 when a body exceeds `max_bytes`.
 
     A declared Content-Length is checked before anything is read; chunked bodies are counted as
-    they stream in, and reading stops at the limit. The exception raised from `receive` is an
+    they stream in, and reading stops at the limit. It also notes when the body has arrived
+    whole (`body_received`), so that a request over its deadline can be told apart as the
+    client's (408, body still arriving) or the service's (504). The exception raised from `receive` is an
     HTTPException so that FastAPI's body parsing lets it through unchanged.
     """
 
@@ -81,6 +90,8 @@ class BodyLimitMiddleware:
                 received += len(message.get("body", b""))
                 if received > self.max_bytes:
                     raise BodyTooLarge(self.max_bytes)
+                if not message.get("more_body", False):
+                    scope.setdefault("state", {})["body_received"] = True
             return message
 
         async def tracking_send(message: Message) -> None:
@@ -186,3 +197,41 @@ def _inflating(receive: Receive, encoding: str, max_bytes: int) -> Receive:
         return {**message, "body": body}
 
     return inflating_receive
+
+
+# Open whatever the API key's scope: what liveness and readiness probes call.
+PROBE_PATH = re.compile(r"/health|/ready|/v2/health/(live|ready)|/v2/models/[^/]+/ready")
+
+
+class ApiKeyMiddleware:
+    """With IFNET_API_KEY_SCOPE=all, every route but the probes needs the API key: /metrics,
+    /docs, /openapi.json and /v2/models/{name} (which shows the model's hashes) included.
+    /register and v2 inference check the key themselves (service.dependencies) either way."""
+
+    def __init__(self, app: ASGIApp, api_key: str):
+        self.app = app
+        self.api_key = api_key.encode()
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if scope["type"] != "http" or PROBE_PATH.fullmatch(scope["path"]) or self._has_key(scope):
+            await self.app(scope, receive, send)
+            return
+        detail = "missing or wrong API key: send it in the X-API-Key header (or Authorization: Bearer <key>)"
+        v2 = scope["path"].startswith("/v2")
+        answer = {"error": detail} if v2 else {"detail": detail, "errors": []}
+        body = json.dumps(answer).encode()
+        headers = [
+            (b"content-type", b"application/json"),
+            (b"content-length", str(len(body)).encode()),
+            (b"www-authenticate", b"Bearer"),
+        ]
+        await send({"type": "http.response.start", "status": 401, "headers": headers})
+        await send({"type": "http.response.body", "body": body})
+
+    def _has_key(self, scope: Scope) -> bool:
+        headers = dict(scope.get("headers") or [])
+        key = headers.get(b"x-api-key")
+        bearer = headers.get(b"authorization", b"")
+        if key is None and bearer[:7].lower() == b"bearer ":
+            key = bearer[7:].strip()
+        return key is not None and secrets.compare_digest(key, self.api_key)

@@ -5,6 +5,7 @@ The v2 model takes clouds in the user's units, like /register: `source` [B, N, 3
 [B, 3] FP32. Each pair is deduplicated, resampled and normalised exactly as /register does.
 """
 
+import math
 from typing import Annotated
 
 import numpy as np
@@ -102,16 +103,35 @@ def _clouds(tensor: V2Tensor) -> np.ndarray:
     shape = tensor.shape
     if len(shape) not in (2, 3) or shape[-1] != 3 or any(size < 1 for size in shape):
         raise InvalidInput(name, f"shape must be [B, N, 3] or [N, 3], got {shape}")
+    values = _flat_numbers(tensor.data, name)
+    needed = math.prod(shape)  # Python integers: a huge shape cannot wrap around to a small product
+    if len(values) != needed:
+        raise InvalidInput(name, f"data has {len(values)} values but shape {shape} needs {needed}")
     try:
-        data = np.asarray(tensor.data, dtype=np.float64)
-    except (ValueError, TypeError, OverflowError):
-        raise InvalidInput(name, "data must be numbers (flat or nested row-major)") from None
-    if data.size != int(np.prod(shape)):
-        raise InvalidInput(name, f"data has {data.size} values but shape {shape} needs {int(np.prod(shape))}")
+        data = np.asarray(values, dtype=np.float64)
+    except OverflowError:  # an integer beyond float64's range
+        raise InvalidInput(name, "data holds a number beyond the float range") from None
     clouds = data.reshape(shape if len(shape) == 3 else [1, *shape])
     for index, cloud in enumerate(clouds):  # finite and in range, as /register checks its clouds
         as_points(cloud, name if len(clouds) == 1 else f"{name}[{index}]")
     return clouds
+
+
+def _flat_numbers(data: list, name: str) -> list:
+    """The tensor's values, flattened row-major: JSON numbers only (numpy would read "1" or true as numbers)."""
+    values = []
+    pending = [iter(data)]
+    while pending:
+        for value in pending[-1]:
+            if isinstance(value, list):
+                pending.append(iter(value))
+                break
+            if isinstance(value, bool) or not isinstance(value, int | float):
+                raise InvalidInput(name, f"data must be JSON numbers (flat or nested row-major), got {value!r:.40}")
+            values.append(value)
+        else:
+            pending.pop()
+    return values
 
 
 @router.post(

@@ -14,12 +14,15 @@ Here a head longer than `max_head_bytes` gets 431 however it arrives; run uvicor
 value as its h11 limit so that a head spread over several reads meets the same bound
 (`python -m service` does).
 
-Lingering close: the service answers some requests before reading their body (401, 413 on the
-declared length, 429). When such a connection must close (the client sent `Connection: close`),
-uvicorn closes it at once, and the kernel answers the body still arriving with a reset, which
-most clients report instead of the answer. Here the connection first shuts its sending side and
-reads and drops up to `max_drain_bytes` more for at most `drain_timeout_s`, as nginx's lingering
-close does, so that the client reads the answer.
+Lingering close: the service answers some requests before reading their body (401, 404, 405,
+413 on the declared length, 429). No further request can follow on such a connection until the
+client has sent the rest of that body, and uvicorn's idle timer, stopped by every byte that
+arrives, would let a client that trickles it hold the connection forever; so the connection is
+closed once the answer is out. When a connection must close, uvicorn closes it at once, and the
+kernel answers the body still arriving with a reset, which most clients report instead of the
+answer. Here the connection first shuts its sending
+side and reads and drops up to `max_drain_bytes` more for at most `drain_timeout_s`, as nginx's
+lingering close does, so that the client reads the answer.
 
 The subclass reaches into uvicorn's H11Protocol and h11's connection state, which neither
 promises to keep: pyproject.toml pins both to TESTED_VERSIONS, and tests/service/test_security.py
@@ -105,6 +108,8 @@ class ServiceProtocol(H11Protocol):
         # deadline leaves the connection busy, and the deadline then does nothing.
         self._arm_head_deadline()
         super().on_response_complete()
+        if self.conn.their_state is h11.SEND_BODY:  # answered before the body ended: no next request can follow
+            self._close_when_drained()
 
     def _close_when_drained(self) -> None:
         """Close now, or, while the client is still sending a request body, once it has stopped."""

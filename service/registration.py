@@ -38,6 +38,10 @@ from service.validation import InvalidInput, check_cloud
 # ICP's correspondence distance and the fitness threshold, in normalised units (clouds of radius NETWORK_RADIUS):
 # 0.05 recovers clean partial pairs exactly, while 0.3 biases the result by about half a degree.
 DEFAULT_DISTANCE_NORMALISED = 0.05
+# ICP holds the interpreter lock: a subset of each cloud and a time limit keep one refinement from
+# stalling the event loop or a worker thread for long (the whole clouds still score the result).
+ICP_MAX_POINTS = 50_000
+ICP_MAX_SECONDS = 10.0
 
 T = TypeVar("T")
 Predict = Callable[[np.ndarray, np.ndarray], Awaitable[Prediction]]
@@ -156,7 +160,14 @@ def _finish(prepared: _Prepared, prediction: Prediction, options: RegistrationOp
         max_distance = options.refine.max_distance or DEFAULT_DISTANCE_NORMALISED * to_user
         network_transform = to_matrix(rotation, translation)
         rotation, translation, iterations = icp_refine(
-            prepared.source, prepared.target, rotation, translation, max_distance, options.refine.max_iterations
+            prepared.source,
+            prepared.target,
+            rotation,
+            translation,
+            max_distance,
+            options.refine.max_iterations,
+            max_points=ICP_MAX_POINTS,
+            max_seconds=ICP_MAX_SECONDS,
         )
         rotation = nearest_rotation(rotation)
         refinement = RefineReport(max_distance, iterations, network_transform)

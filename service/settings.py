@@ -77,6 +77,12 @@ class Settings(BaseSettings):
     api_key: SecretStr | None = Field(
         None, description="If set, /register and v2 inference need it in `X-API-Key` or `Authorization: Bearer`."
     )
+    api_key_scope: Literal["inference", "all"] = Field(
+        "inference",
+        description="With an API key: `inference` guards /register and v2 inference only; `all` guards every route "
+        "but the probes (/health, /ready, /v2/health/*, /v2/models/{name}/ready): /metrics, /docs, /openapi.json, "
+        "/v2/models/{name} too.",
+    )
     latency_window: int = Field(1000, ge=10, description="Recent /register requests the /health percentiles cover.")
 
     @model_validator(mode="after")

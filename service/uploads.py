@@ -3,7 +3,7 @@
 import asyncio
 import contextlib
 import errno
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from typing import TypeVar
 
 import numpy as np
@@ -18,6 +18,7 @@ from service.settings import Settings
 from service.validation import InvalidInput
 
 Model = TypeVar("Model", bound=BaseModel)
+T = TypeVar("T")
 
 JSON_TYPES = ("application/json",)
 MULTIPART_TYPES = ("multipart/form-data",)
@@ -35,6 +36,19 @@ class UnsupportedMediaType(HTTPException):
 # Parsing builds Python objects under the GIL, so large bodies parsed side by side gain nothing and
 # each holds its objects meanwhile: they take turns. Small bodies never wait.
 LARGE_JSON_BYTES = 1 << 20
+LARGE_BODY_BYTES = LARGE_JSON_BYTES
+
+
+async def parse_in_thread(request: Request, size: int, parse: Callable[..., T], *args) -> T:
+    """Run `parse(*args)` in a worker thread; bodies over LARGE_BODY_BYTES one at a time.
+
+    A request whose deadline passes while it waits for its turn never starts parsing, so the
+    worker threads stay free for requests that can still be answered.
+    """
+    if size <= LARGE_BODY_BYTES:
+        return await asyncio.to_thread(parse, *args)
+    async with request.app.state.service.large_json_parse:
+        return await asyncio.to_thread(parse, *args)
 
 
 async def parse_json(request: Request, schema: type[Model]) -> Model:
@@ -42,10 +56,7 @@ async def parse_json(request: Request, schema: type[Model]) -> Model:
     the event loop (health checks, other clients). Bodies over LARGE_JSON_BYTES are parsed one at
     a time. Raises pydantic's ValidationError (422)."""
     body = await request.body()
-    if len(body) <= LARGE_JSON_BYTES:
-        return await asyncio.to_thread(schema.model_validate_json, body)
-    async with request.app.state.service.large_json_parse:
-        return await asyncio.to_thread(schema.model_validate_json, body)
+    return await parse_in_thread(request, len(body), schema.model_validate_json, body)
 
 
 def media_type(request: Request) -> str:
@@ -76,7 +87,7 @@ async def read_register_body(
     if media in RAW_TYPES:
         body = await request.body()
         try:
-            source, target = await asyncio.to_thread(read_pair, body, settings.max_cloud_points)
+            source, target = await parse_in_thread(request, len(body), read_pair, body, settings.max_cloud_points)
         except UnsupportedFormat as error:
             raise UnsupportedMediaType(str(error)) from None
         return source, target, _options(query_options)
@@ -104,7 +115,10 @@ async def _read_multipart(
                     )
                 data = await part.read()
                 try:
-                    clouds.append(await asyncio.to_thread(read_cloud, data, name, settings.max_cloud_points))
+                    cloud = await parse_in_thread(
+                        request, len(data), read_cloud, data, name, settings.max_cloud_points, settings.max_body_bytes
+                    )
+                    clouds.append(cloud)
                 except UnsupportedFormat as error:
                     raise UnsupportedMediaType(str(error)) from None
             options_field = form.get("options")

@@ -78,8 +78,16 @@ def _describe_rows(value: Any) -> str:
     return "must be a list of [x, y, z] points (N x 3)"
 
 
+def _only_numbers(value: Any) -> bool:
+    if isinstance(value, list | tuple):
+        return all(_only_numbers(item) for item in value)
+    return isinstance(value, int | float) and not isinstance(value, bool)
+
+
 def as_rigid_transform(value: Any, field: str = "init") -> np.ndarray:
     """A proper rigid 4x4 matrix (rotation re-orthonormalised), or InvalidInput."""
+    if not isinstance(value, np.ndarray) and not _only_numbers(value):  # numpy would read "1" and true as numbers
+        raise InvalidInput(field, "must be a 4x4 matrix of numbers (not strings or true/false)")
     try:
         matrix = np.asarray(value, dtype=np.float64)
     except (ValueError, TypeError):
