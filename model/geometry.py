@@ -294,8 +294,8 @@ def point_spacing(points: np.ndarray, max_queries: int = 4096, seed: int = 0) ->
 # Calibrated by bench/calibrate_check.py on ModelNet and real-scan pairs with known truth (docs/verification.md).
 INLIER_SPACINGS = 1.5  # inlier distance, in point spacings
 REFINE_SPACINGS = 2.0  # correspondence distance of refine(), in point spacings
-MIN_FITNESS = 0.2  # both ways: below it the clouds hardly touch, and a refinement finds nothing to move
-MAX_DRIFT_SPACINGS = 0.2  # a right answer is where point-to-plane ICP settles; wrong ones slide on
+MIN_FITNESS = 0.3  # both ways: below it the clouds hardly touch, and a refinement finds nothing to move
+MAX_DRIFT_SPACINGS = 0.2  # a right answer is where refine() settles; wrong ones slide on
 MIN_CONSTRAINT = 0.02  # inliers on one plane or one cylinder can slide along it without losing fit
 MIN_INLIERS = 30  # fewer matching points prove nothing
 
@@ -427,14 +427,14 @@ def refine(
     rotation: np.ndarray,
     translation: np.ndarray,
     max_distance: float | None = None,
-    method: str = "PLANE_ICP",
+    method: str = "GICP",
     max_iterations: int = 30,
     spacing: float | None = None,
 ) -> tuple[np.ndarray, np.ndarray, int]:
-    """Point-to-plane ICP (small_gicp) on the full clouds from (rotation, translation).
+    """Generalised ICP (small_gicp GICP) on the full clouds from (rotation, translation).
 
     max_distance: the correspondence distance in the clouds' units; by default REFINE_SPACINGS
-    point spacings (pass spacing if known). method: small_gicp's "PLANE_ICP", "ICP" or "GICP".
+    point spacings (pass spacing if known). method: small_gicp's "GICP", "PLANE_ICP" or "ICP".
     Returns the refined (R, t) and the number of iterations run.
     """
     import small_gicp  # imported here so that the rest of this module needs only numpy/scipy
