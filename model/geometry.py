@@ -5,6 +5,7 @@ target ~ source @ R.T + t; 4x4 matrices are homogeneous [[R, t], [0, 1]].
 """
 
 import time
+from typing import NamedTuple
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -296,3 +297,196 @@ def _subset(points: np.ndarray, count: int) -> np.ndarray:
     if len(points) <= count:
         return points
     return points[np.sort(np.random.default_rng(0).choice(len(points), size=count, replace=False))]
+
+
+# ---------------------------------------------------------------- verification
+
+
+def point_spacing(points: np.ndarray, max_queries: int = 4096, seed: int = 0) -> float:
+    """Median distance from a point to its nearest other point: the cloud's sampling step.
+
+    At most max_queries points (a seeded random subset) are queried against the whole cloud, so
+    the cost stays bounded on large scans; exact duplicates are not counted as neighbours.
+    """
+    if len(points) < 2:
+        return 0.0
+    queries = points
+    if len(points) > max_queries:
+        queries = points[np.random.default_rng(seed).choice(len(points), size=max_queries, replace=False)]
+    distances, _ = cKDTree(points).query(queries, k=2)
+    nearest = distances[:, 1]
+    nearest = nearest[nearest > 0]  # duplicates say nothing about the spacing
+    return float(np.median(nearest)) if len(nearest) else 0.0
+
+
+# Calibrated by bench/calibrate_check.py on ModelNet and real-scan pairs with known truth (docs/verification.md).
+INLIER_SPACINGS = 1.5  # inlier distance, in point spacings
+REFINE_SPACINGS = 2.0  # correspondence distance of refine(), in point spacings
+MIN_FITNESS = 0.3  # both ways: below it the clouds hardly touch, and a refinement finds nothing to move
+MAX_DRIFT_SPACINGS = 0.2  # a right answer is where refine() settles; wrong ones slide on
+MIN_CONSTRAINT = 0.02  # inliers on one plane or one cylinder can slide along it without losing fit
+MIN_INLIERS = 30  # fewer matching points prove nothing
+
+
+class AlignmentScore(NamedTuple):
+    """How well a transform lays the source on the target, at an inlier distance set by the spacing."""
+
+    spacing: float  # the larger of the two clouds' point spacings (point_spacing)
+    threshold: float  # inlier distance: INLIER_SPACINGS * spacing
+    fitness: float  # share of source points with a target point within threshold
+    inlier_rmse: float  # RMSE of those distances
+    overlap: float  # share of target points with a moved source point within threshold (the other way)
+    inliers: int  # source points within threshold
+    constraint: float  # how well the inliers pin all six motions down (0: they can slide; see inlier_constraint)
+
+
+def inlier_constraint(points: np.ndarray, normals: np.ndarray) -> float:
+    """Smallest eigenvalue of the point-to-plane information matrix of unit normals at points.
+
+    Positions are centred and scaled to unit RMS radius, so the value depends on shape alone: 0
+    when some motion (a slide along a plane, a turn about an axis of symmetry) moves no point off
+    its surface, about 0.1 for points spread over surfaces facing every way.
+    """
+    if len(points) < 6:
+        return 0.0
+    centred = points - points.mean(axis=0)
+    radius = np.sqrt(np.mean(np.sum(centred**2, axis=1)))
+    if radius == 0:
+        return 0.0
+    jacobian = np.concatenate([np.cross(centred / radius, normals), normals], axis=1)
+    return float(np.linalg.eigvalsh(jacobian.T @ jacobian / len(points))[0])
+
+
+def surface_normals(points: np.ndarray, tree: cKDTree, cloud: np.ndarray, neighbours: int = 12) -> np.ndarray:
+    """Unit normals of `cloud` (indexed by tree) at `points`: the least-spread axis of the neighbours."""
+    _, index = tree.query(points, k=min(neighbours, len(cloud)))
+    local = cloud[index] - cloud[index].mean(axis=1, keepdims=True)
+    _, vectors = np.linalg.eigh(np.einsum("nki,nkj->nij", local, local))
+    return vectors[:, :, 0]
+
+
+def score_alignment(
+    source: np.ndarray,
+    target: np.ndarray,
+    rotation: np.ndarray,
+    translation: np.ndarray,
+    spacing: float | None = None,
+) -> AlignmentScore:
+    """Fitness and inlier RMSE of (R, t) at INLIER_SPACINGS point spacings, both ways, and how
+    well the inliers constrain the motion.
+
+    spacing: pass it when scoring many transforms of one pair (it depends only on the clouds).
+    """
+    if spacing is None:
+        spacing = max(point_spacing(source), point_spacing(target))
+    threshold = INLIER_SPACINGS * spacing
+    moved = apply_transform(source, rotation, translation)
+    target_tree = cKDTree(target)
+    forward, matches = target_tree.query(moved, k=1, distance_upper_bound=threshold)
+    backward, _ = cKDTree(moved).query(target, k=1, distance_upper_bound=threshold)
+    inliers = np.isfinite(forward)
+    matched = target[matches[inliers]]
+    return AlignmentScore(
+        spacing=float(spacing),
+        threshold=float(threshold),
+        fitness=float(inliers.mean()),
+        inlier_rmse=float(np.sqrt(np.mean(forward[inliers] ** 2))) if inliers.any() else 0.0,
+        overlap=float(np.isfinite(backward).mean()),
+        inliers=int(inliers.sum()),
+        constraint=inlier_constraint(matched, surface_normals(matched, target_tree, target)) if len(matched) else 0.0,
+    )
+
+
+class Verdict(NamedTuple):
+    verified: bool
+    reason: str | None  # why not, when verified is False
+
+
+def judge(score: AlignmentScore, drift: float) -> Verdict:
+    """The verdict on a score and its drift (how far refine() moves the answer, in point spacings).
+
+    Every rule is one failure mode of a wrong answer; a right answer passes all of them, a right
+    answer a refinement would still improve may be flagged (flagging it is the safe error).
+    """
+    if score.inliers < MIN_INLIERS:
+        return Verdict(False, f"only {score.inliers} points match within {score.threshold:.3g}")
+    if min(score.fitness, score.overlap) < MIN_FITNESS:
+        return Verdict(False, f"low overlap: fitness {score.fitness:.2f}, reverse {score.overlap:.2f}")
+    if score.constraint < MIN_CONSTRAINT:
+        return Verdict(False, f"the matching points do not pin the motion down (constraint {score.constraint:.3f})")
+    if not drift <= MAX_DRIFT_SPACINGS:
+        return Verdict(False, f"not settled: refinement moves the points {drift:.2f} point spacings")
+    return Verdict(True, None)
+
+
+class Verification(NamedTuple):
+    verified: bool
+    reason: str | None
+    score: AlignmentScore
+    drift: float  # RMS move of the source points under refine(), in point spacings
+
+
+def verify_alignment(
+    source: np.ndarray,
+    target: np.ndarray,
+    rotation: np.ndarray,
+    translation: np.ndarray,
+    spacing: float | None = None,
+) -> Verification:
+    """Is (R, t) right? Scores it at the clouds' point spacing, refines it once to see whether it
+    has settled, and judges both (judge). Call it on the final answer, refined or not."""
+    if spacing is None:
+        spacing = max(point_spacing(source), point_spacing(target))
+    score = score_alignment(source, target, rotation, translation, spacing)
+    refined_rotation, refined_translation, _ = refine(source, target, rotation, translation, spacing=spacing)
+    moved = apply_transform(source, rotation, translation)
+    shift = apply_transform(source, refined_rotation, refined_translation) - moved
+    drift = float(np.sqrt(np.mean(np.sum(shift**2, axis=1))) / spacing) if spacing > 0 else float("inf")
+    verdict = judge(score, drift)
+    return Verification(verdict.verified, verdict.reason, score, drift)
+
+
+# ---------------------------------------------------------------- refinement (spacing-based)
+
+
+def refine(
+    source: np.ndarray,
+    target: np.ndarray,
+    rotation: np.ndarray,
+    translation: np.ndarray,
+    max_distance: float | None = None,
+    method: str = "GICP",
+    max_iterations: int = 30,
+    spacing: float | None = None,
+) -> tuple[np.ndarray, np.ndarray, int]:
+    """Generalised ICP (small_gicp GICP) on the full clouds from (rotation, translation).
+
+    max_distance: the correspondence distance in the clouds' units; by default REFINE_SPACINGS
+    point spacings (pass spacing if known). method: small_gicp's "GICP", "PLANE_ICP" or "ICP".
+    Returns the refined (R, t) and the number of iterations run.
+    """
+    import small_gicp  # imported here so that the rest of this module needs only numpy/scipy
+
+    if max_distance is None:
+        if spacing is None:
+            spacing = max(point_spacing(source), point_spacing(target))
+        max_distance = REFINE_SPACINGS * spacing
+    target_cloud = small_gicp.PointCloud(np.ascontiguousarray(target, dtype=np.float64))
+    source_cloud = small_gicp.PointCloud(np.ascontiguousarray(source, dtype=np.float64))
+    target_tree = small_gicp.KdTree(target_cloud)
+    if method != "ICP":
+        small_gicp.estimate_normals_covariances(target_cloud, target_tree, num_neighbors=20)
+        small_gicp.estimate_normals_covariances(source_cloud, small_gicp.KdTree(source_cloud), num_neighbors=20)
+    result = small_gicp.align(
+        target_cloud,
+        source_cloud,
+        target_tree,
+        init_T_target_source=to_matrix(rotation, translation),
+        registration_type=method,
+        max_correspondence_distance=max_distance,
+        max_iterations=max_iterations,
+        rotation_epsilon=1e-5,
+        translation_epsilon=1e-6 * max_distance,
+    )
+    refined_rotation, refined_translation = from_matrix(np.asarray(result.T_target_source))
+    return nearest_rotation(refined_rotation), refined_translation, int(result.iterations)

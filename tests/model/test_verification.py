@@ -1,0 +1,121 @@
+"""The answer check and the spacing-based refinement in model.geometry, on synthetic clouds."""
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from model.geometry import (
+    MAX_DRIFT_SPACINGS,
+    MIN_CONSTRAINT,
+    AlignmentScore,
+    apply_transform,
+    inlier_constraint,
+    judge,
+    point_spacing,
+    refine,
+    rotation_angle_deg,
+    score_alignment,
+    verify_alignment,
+)
+
+
+def grid(step: float, size: int = 20) -> np.ndarray:
+    axis = np.arange(size) * step
+    return np.stack(np.meshgrid(axis, axis, [0.0]), axis=-1).reshape(-1, 3)
+
+
+def blob(rng: np.random.Generator, count: int = 1500) -> np.ndarray:
+    """A closed bumpy surface, stretched per axis (no symmetry a check could be fooled by)."""
+    directions = rng.normal(size=(count, 3))
+    directions /= np.linalg.norm(directions, axis=1, keepdims=True)
+    bumps = 1.0 + 0.2 * np.sin(3.0 * directions[:, 0] + 2.0 * directions[:, 1]) * np.cos(2.0 * directions[:, 2])
+    return directions * bumps[:, None] * np.array([1.0, 0.7, 0.5])
+
+
+def pair(seed: int = 0, jitter: float = 0.0):
+    """Two independent samplings of one surface (no shared point), the second moved."""
+    rng = np.random.default_rng(seed)
+    surface = blob(rng, 3000)
+    source, target = surface[:1500], surface[1500:]
+    rotation = Rotation.from_euler("zyx", [30, 20, 10], degrees=True).as_matrix()
+    translation = np.array([0.3, -0.2, 0.1])
+    target = apply_transform(target, rotation, translation) + rng.normal(0, jitter, target.shape)
+    return source, target, rotation, translation
+
+
+def turned(rotation, translation, degrees: float, centre: np.ndarray):
+    """The transform followed by a turn of `degrees` about the x axis through `centre`."""
+    turn = Rotation.from_euler("x", degrees, degrees=True).as_matrix()
+    return turn @ rotation, turn @ translation + centre - turn @ centre
+
+
+def test_spacing_is_the_grid_step_and_ignores_duplicates():
+    points = grid(0.05)
+    assert point_spacing(points) == pytest.approx(0.05)
+    assert point_spacing(np.concatenate([points, points[:50]])) == pytest.approx(0.05)
+    assert point_spacing(points, max_queries=100) == pytest.approx(0.05)
+
+
+def test_score_uses_the_spacing_not_the_extent():
+    """A shift of 5 grid steps keeps no inlier, whatever the cloud's size."""
+    points = grid(0.05)
+    exact = score_alignment(points, points, np.eye(3), np.zeros(3))
+    assert (exact.fitness, exact.overlap, exact.inlier_rmse) == (1.0, 1.0, 0.0)
+    assert exact.threshold == pytest.approx(1.5 * 0.05)
+    shifted = score_alignment(points, points, np.eye(3), np.array([0.0, 0.0, 0.25]))
+    assert shifted.fitness == 0.0 and shifted.inliers == 0
+
+
+def test_overlap_counts_the_other_way():
+    points = grid(0.05)
+    half = points[points[:, 0] < 0.45]  # 9 of the 20 columns
+    score = score_alignment(half, points, np.eye(3), np.zeros(3))
+    assert score.fitness == 1.0
+    # The 10th column lies one step (< 1.5 steps) from the half's last one, so it counts as covered.
+    assert score.overlap == pytest.approx(10 / 20)
+
+
+def test_constraint_is_zero_on_a_plane_and_positive_on_a_closed_surface():
+    plane = grid(0.05)
+    assert inlier_constraint(plane, np.tile([0.0, 0.0, 1.0], (len(plane), 1))) == pytest.approx(0.0, abs=1e-12)
+    sphere = blob(np.random.default_rng(1)) / np.array([1.0, 0.7, 0.5])  # the unit sphere, normals = points
+    sphere /= np.linalg.norm(sphere, axis=1, keepdims=True)
+    # A sphere turns about its centre without leaving its surface: rotations are free, shifts are not.
+    assert inlier_constraint(sphere, sphere) == pytest.approx(0.0, abs=1e-9)
+    source, target, rotation, translation = pair()
+    assert score_alignment(source, target, rotation, translation).constraint > MIN_CONSTRAINT
+
+
+@pytest.mark.parametrize("jitter", [0.0, 0.01])
+def test_right_answer_is_verified_and_wrong_ones_are_not(jitter):
+    source, target, rotation, translation = pair(jitter=jitter)
+    right = verify_alignment(source, target, rotation, translation)
+    assert right.verified, right.reason
+    centre = apply_transform(source, rotation, translation).mean(axis=0)
+    for degrees in (4.0, 15.0, 60.0):
+        wrong = verify_alignment(source, target, *turned(rotation, translation, degrees, centre))
+        assert not wrong.verified, degrees
+        assert wrong.reason
+    shift = verify_alignment(source, target, rotation, translation + np.array([0.0, 0.0, 0.15]))
+    assert not shift.verified and shift.reason
+
+
+def test_judge_names_each_failure():
+    good = AlignmentScore(0.05, 0.075, 0.9, 0.03, 0.9, 500, 0.1)
+    assert judge(good, 0.0) == (True, None)
+    assert "match" in judge(good._replace(inliers=5), 0.0).reason
+    assert "overlap" in judge(good._replace(overlap=0.05), 0.0).reason
+    assert "pin" in judge(good._replace(constraint=0.001), 0.0).reason
+    assert "settled" in judge(good, 2 * MAX_DRIFT_SPACINGS).reason
+    assert not judge(good, float("nan")).verified
+
+
+@pytest.mark.parametrize("method", ["PLANE_ICP", "ICP", "GICP"])
+def test_refine_recovers_a_few_degrees_at_the_spacing_distance(method):
+    source, target, rotation, translation = pair(jitter=0.005)
+    centre = apply_transform(source, rotation, translation).mean(axis=0)
+    start = turned(rotation, translation, 3.0, centre)
+    refined_rotation, refined_translation, iterations = refine(source, target, *start, method=method)
+    assert rotation_angle_deg(refined_rotation, rotation) < 0.5
+    assert np.linalg.norm(refined_translation - translation) < 0.01
+    assert iterations >= 1
