@@ -238,62 +238,12 @@ class Normalisation:
 # ---------------------------------------------------------------- refinement
 
 
-def icp_refine(
-    source: np.ndarray,
-    target: np.ndarray,
-    rotation: np.ndarray,
-    translation: np.ndarray,
-    max_distance: float,
-    max_iterations: int = 30,
-    max_points: int | None = None,
-    max_seconds: float | None = None,
-) -> tuple[np.ndarray, np.ndarray, int]:
-    """Point-to-point ICP (small_gicp) on the full clouds, starting from (rotation, translation).
-
-    max_distance bounds the correspondence distance, in the clouds' units. Returns the refined
-    (R, t) and the number of iterations run.
-
-    small_gicp holds the interpreter lock while it runs, so a caller that shares the process with
-    other work (the service) bounds it: `max_points` runs ICP on a seeded random subset of each
-    larger cloud, and the iterations run a few at a time, between which other threads get the
-    lock and after which `max_seconds` (if given) may end the refinement early.
-    """
-    import small_gicp  # imported here so that the rest of this module needs only numpy/scipy
-
-    if max_points is not None:
-        source, target = (_subset(cloud, max_points) for cloud in (source, target))
-    target_cloud = small_gicp.PointCloud(np.ascontiguousarray(target, dtype=np.float64))
-    source_cloud = small_gicp.PointCloud(np.ascontiguousarray(source, dtype=np.float64))
-    tree = small_gicp.KdTree(target_cloud)
-    # One call for plain use; a few iterations per call where the caller needs the lock back often.
-    step = max_iterations if max_points is None and max_seconds is None else ICP_ITERATIONS_PER_CALL
-    transform = to_matrix(rotation, translation)
-    steps = 0  # small_gicp numbers its steps from 0 and reports the last one's number
-    started = time.perf_counter()
-    while steps < max_iterations:
-        result = small_gicp.align(
-            target_cloud,
-            source_cloud,
-            tree,
-            init_T_target_source=transform,
-            registration_type="ICP",
-            max_correspondence_distance=max_distance,
-            max_iterations=min(step, max_iterations - steps),
-            rotation_epsilon=1e-5,
-            translation_epsilon=1e-6 * max_distance,
-        )
-        transform = np.asarray(result.T_target_source)
-        steps += int(result.iterations) + 1
-        if result.converged or (max_seconds is not None and time.perf_counter() - started > max_seconds):
-            break
-    refined_rotation, refined_translation = from_matrix(transform)
-    return refined_rotation, refined_translation, steps - 1
+# small_gicp holds the interpreter lock while it runs: bounded callers run it a few iterations at a time.
+ITERATIONS_PER_CALL = 2
 
 
-ICP_ITERATIONS_PER_CALL = 2
-
-
-def _subset(points: np.ndarray, count: int) -> np.ndarray:
+def subset(points: np.ndarray, count: int) -> np.ndarray:
+    """At most `count` of the points: a seeded random subset, in their original order."""
     if len(points) <= count:
         return points
     return points[np.sort(np.random.default_rng(0).choice(len(points), size=count, replace=False))]
@@ -458,15 +408,24 @@ def refine(
     method: str = "GICP",
     max_iterations: int = 30,
     spacing: float | None = None,
+    max_points: int | None = None,
+    max_seconds: float | None = None,
 ) -> tuple[np.ndarray, np.ndarray, int]:
-    """Generalised ICP (small_gicp GICP) on the full clouds from (rotation, translation).
+    """small_gicp registration (GICP by default) on the full clouds from (rotation, translation).
 
     max_distance: the correspondence distance in the clouds' units; by default REFINE_SPACINGS
     point spacings (pass spacing if known). method: small_gicp's "GICP", "PLANE_ICP" or "ICP".
     Returns the refined (R, t) and the number of iterations run.
+
+    small_gicp holds the interpreter lock while it runs, so a caller that shares the process with
+    other work (the service) bounds it: `max_points` refines on a seeded random subset of each
+    larger cloud, and the iterations run a few at a time, between which other threads get the
+    lock and after which `max_seconds` (if given) may end the refinement early.
     """
     import small_gicp  # imported here so that the rest of this module needs only numpy/scipy
 
+    if max_points is not None:
+        source, target = (subset(cloud, max_points) for cloud in (source, target))
     if max_distance is None:
         if spacing is None:
             spacing = max(point_spacing(source), point_spacing(target))
@@ -477,16 +436,43 @@ def refine(
     if method != "ICP":
         small_gicp.estimate_normals_covariances(target_cloud, target_tree, num_neighbors=20)
         small_gicp.estimate_normals_covariances(source_cloud, small_gicp.KdTree(source_cloud), num_neighbors=20)
-    result = small_gicp.align(
-        target_cloud,
-        source_cloud,
-        target_tree,
-        init_T_target_source=to_matrix(rotation, translation),
-        registration_type=method,
-        max_correspondence_distance=max_distance,
-        max_iterations=max_iterations,
-        rotation_epsilon=1e-5,
-        translation_epsilon=1e-6 * max_distance,
-    )
-    refined_rotation, refined_translation = from_matrix(np.asarray(result.T_target_source))
-    return nearest_rotation(refined_rotation), refined_translation, int(result.iterations)
+    step = max_iterations if max_points is None and max_seconds is None else ITERATIONS_PER_CALL
+    transform = to_matrix(rotation, translation)
+    steps = 0  # small_gicp numbers its steps from 0 and reports the last one's number
+    started = time.perf_counter()
+    while steps < max_iterations:
+        result = small_gicp.align(
+            target_cloud,
+            source_cloud,
+            target_tree,
+            init_T_target_source=transform,
+            registration_type=method,
+            max_correspondence_distance=max_distance,
+            max_iterations=min(step, max_iterations - steps),
+            rotation_epsilon=1e-5,
+            translation_epsilon=1e-6 * max_distance,
+        )
+        transform = np.asarray(result.T_target_source)
+        steps += int(result.iterations) + 1
+        if result.converged or (max_seconds is not None and time.perf_counter() - started > max_seconds):
+            break
+    refined_rotation, refined_translation = from_matrix(transform)
+    return nearest_rotation(refined_rotation), refined_translation, steps - 1
+
+
+# ---------------------------------------------------------------- feature-based global registration
+
+FEATURE_VOXEL_SPACINGS = 1.5  # KISS-Matcher's voxel size, in point spacings
+
+
+def feature_match(source: np.ndarray, target: np.ndarray, spacing: float) -> tuple[np.ndarray, np.ndarray]:
+    """(R, t) from matching local features (KISS-Matcher), whatever the rotation: a coarse answer
+    to refine. Identity where the matcher finds nothing."""
+    import kiss_matcher  # imported here so that the rest of this module needs only numpy/scipy
+
+    matcher = kiss_matcher.KISSMatcher(kiss_matcher.KISSMatcherConfig(FEATURE_VOXEL_SPACINGS * spacing))
+    found = matcher.estimate(np.ascontiguousarray(source, np.float64), np.ascontiguousarray(target, np.float64))
+    rotation, translation = np.asarray(found.rotation, np.float64), np.asarray(found.translation, np.float64)
+    if not (np.isfinite(rotation).all() and np.isfinite(translation).all()):
+        return np.eye(3), np.zeros(3)
+    return nearest_rotation(rotation), translation.reshape(3)

@@ -115,6 +115,8 @@ def format_report(result: dict[str, Any]) -> str:
         f"fitness {result['fitness']:.4f}  inlier_rmse {result['inlier_rmse']:.6g}  "
         f"(threshold {result['fitness_threshold']:.6g})"
     )
+    verdict = "verified" if result["verified"] else f"NOT verified: {result['reason']}"
+    rows.append(f"{verdict}  (stage {result['stage']})")
     model, timings = result["model"], result["timings_ms"]
     rows.append(f"model {model['name']} {model['version']}  total {timings['total_ms']:.0f} ms")
     return "\n".join(rows)
@@ -135,6 +137,12 @@ def main(argv: list[str] | None = None) -> int:
         type=int,
         dest="network_points",
         help="points per cloud given to the network",
+    )
+    parser.add_argument(
+        "--method",
+        choices=["auto", "ifnet", "global"],
+        help="ifnet: the network; global: a search for any rotation; auto (service default): the network, "
+        "then the search if the answer fails the check",
     )
     parser.add_argument(
         "--sampling", choices=["fps", "random"], help="subsampling to the network's point count (service default: fps)"
@@ -163,6 +171,7 @@ def main(argv: list[str] | None = None) -> int:
                 init=init,
                 refine=refine,
                 network_points=args.network_points,
+                method=args.method,
                 sampling=args.sampling,
                 seed=args.seed,
             )

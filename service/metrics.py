@@ -55,6 +55,12 @@ class Metrics:
             ["reason"],
             registry=self.registry,
         )
+        self.answers = Counter(
+            "ifnet_answers",
+            "Registered pairs by the stage that gave the answer and whether it was verified.",
+            ["stage", "verified"],
+            registry=self.registry,
+        )
         self.ready = Gauge("ifnet_ready", "1 once the model is loaded and warmed up.", registry=self.registry)
         self.model = Info("ifnet_model", "The served model.", registry=self.registry)
 

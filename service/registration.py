@@ -14,34 +14,47 @@ import time
 from collections.abc import AsyncIterator, Awaitable, Callable
 from contextlib import asynccontextmanager
 from dataclasses import dataclass
-from typing import Any, TypeVar
+from typing import Any, Literal, TypeVar
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 from starlette.requests import Request
 
 from model.geometry import (
+    REFINE_SPACINGS,
     Normalisation,
+    Verification,
     apply_transform,
+    feature_match,
     fitness_and_rmse,
     from_matrix,
-    icp_refine,
     nearest_rotation,
+    point_spacing,
+    refine,
     resample_indices,
+    score_alignment,
+    subset,
     to_matrix,
+    verify_alignment,
 )
 from service.batcher import Prediction, RequestTimeoutError
-from service.schemas import RegistrationOptions, Sampling
+from service.schemas import RefineOptions, RegistrationOptions, Sampling
 from service.settings import Settings
 from service.state import ServiceState
 from service.validation import InvalidInput, check_cloud
 
-# ICP's correspondence distance and the fitness threshold, in normalised units (clouds of radius NETWORK_RADIUS):
-# 0.05 recovers clean partial pairs exactly, while 0.3 biases the result by about half a degree.
-DEFAULT_DISTANCE_NORMALISED = 0.05
-# ICP holds the interpreter lock: a subset of each cloud and a time limit keep one refinement from
-# stalling the event loop or a worker thread for long (the whole clouds still score the result).
-ICP_MAX_POINTS = 50_000
-ICP_MAX_SECONDS = 10.0
+# small_gicp holds the interpreter lock: a subset of each cloud and a time limit keep one refinement
+# from stalling the event loop or a worker thread for long.
+REFINE_MAX_POINTS = 50_000
+# The refinement's first, coarse pass, in normalised units (clouds of radius NETWORK_RADIUS).
+COARSE_DISTANCE_NORMALISED = 0.05
+REFINE_MAX_SECONDS = 10.0
+CHECK_MAX_POINTS = 30_000  # the answer check's cost stays bounded on large scans
+# The global path's starts: the 24 rotations of a cube, every rotation within the network's range
+# of one of them; the network's answers from the best few (by fitness) are refined and checked.
+STARTS = Rotation.create_group("O").as_matrix()
+STARTS_REFINED = 3
+Stage = Literal["ifnet", "multistart", "features"]
 
 T = TypeVar("T")
 Predict = Callable[[np.ndarray, np.ndarray], Awaitable[Prediction]]
@@ -86,6 +99,9 @@ class RegistrationResult:
     fitness: float
     inlier_rmse: float
     fitness_threshold: float
+    verified: bool  # the answer passed the check (model.geometry.verify_alignment)
+    reason: str | None  # why not, when verified is False
+    stage: "Stage"  # which part of the pipeline gave the answer
     points: CloudReports
     refinement: RefineReport | None
     timings_ms: dict[str, float]  # queue, inference, preprocess, postprocess; batch_size
@@ -117,6 +133,9 @@ class _Prepared:
     normalisation: Normalisation
     init: np.ndarray  # 4x4
     points: CloudReports
+    source_check: np.ndarray  # at most CHECK_MAX_POINTS of `source`: what the answer check scores
+    target_check: np.ndarray
+    spacing: float  # the check clouds' point spacing (model.geometry.point_spacing)
     seconds: float
 
 
@@ -133,6 +152,7 @@ def _prepare(source: np.ndarray, target: np.ndarray, options: RegistrationOption
     init = np.eye(4) if options.init is None else options.init
     source_sampled = apply_transform(sampled["source"], *from_matrix(init))
     normalisation = Normalisation(source_sampled, sampled["target"])
+    source_check, target_check = (subset(clouds[name], CHECK_MAX_POINTS) for name in ("source", "target"))
     return _Prepared(
         source=clouds["source"],
         target=clouds["target"],
@@ -141,56 +161,132 @@ def _prepare(source: np.ndarray, target: np.ndarray, options: RegistrationOption
         normalisation=normalisation,
         init=init,
         points=CloudReports(**reports),
+        source_check=source_check,
+        target_check=target_check,
+        spacing=max(point_spacing(source_check), point_spacing(target_check)),
         seconds=time.perf_counter() - started,
     )
 
 
-def _finish(prepared: _Prepared, prediction: Prediction, options: RegistrationOptions) -> RegistrationResult:
-    started = time.perf_counter()
+def _user_transform(prepared: _Prepared, prediction: Prediction, start: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The network's answer for the normalised source turned by `start`, in the user's units and
+    composed with `init`: a transform of the user's source."""
     if not (np.isfinite(prediction.rotation).all() and np.isfinite(prediction.translation).all()):
         raise RegistrationFailed("the model returned a non-finite transform for these clouds")
-    # The network's transform maps the init-moved source onto the target; compose it with init.
+    rotation = nearest_rotation(np.asarray(prediction.rotation, np.float64)) @ start
     rotation, translation = prepared.normalisation.to_user_units(
-        nearest_rotation(np.asarray(prediction.rotation, np.float64)), np.asarray(prediction.translation, np.float64)
+        rotation, np.asarray(prediction.translation, np.float64)
     )
-    rotation, translation = from_matrix(to_matrix(rotation, translation) @ prepared.init)
-    to_user = 1.0 / prepared.normalisation.scale
+    return from_matrix(to_matrix(rotation, translation) @ prepared.init)
+
+
+@dataclass(frozen=True)
+class _Candidate:
+    rotation: np.ndarray
+    translation: np.ndarray
+    refinement: RefineReport | None
+    verification: Verification
+
+
+def _checked(prepared: _Prepared, rotation: np.ndarray, translation: np.ndarray, refine_options) -> _Candidate:
+    """Refine (when asked) and check one answer. Without a distance of the user's, the refinement
+    runs coarse to fine: first at a share of the clouds' size (to pull in a few degrees' error),
+    then at a few point spacings (to settle on the surfaces)."""
     refinement = None
-    if options.refine is not None:
-        max_distance = options.refine.max_distance or DEFAULT_DISTANCE_NORMALISED * to_user
+    if refine_options is not None:
         network_transform = to_matrix(rotation, translation)
-        rotation, translation, iterations = icp_refine(
-            prepared.source,
-            prepared.target,
-            rotation,
-            translation,
-            max_distance,
-            options.refine.max_iterations,
-            max_points=ICP_MAX_POINTS,
-            max_seconds=ICP_MAX_SECONDS,
-        )
-        rotation = nearest_rotation(rotation)
-        refinement = RefineReport(max_distance, iterations, network_transform)
-    threshold = options.fitness_threshold or DEFAULT_DISTANCE_NORMALISED * to_user
-    fitness, inlier_rmse = fitness_and_rmse(
-        apply_transform(prepared.source, rotation, translation), prepared.target, threshold
-    )
+        fine = REFINE_SPACINGS * prepared.spacing
+        coarse = COARSE_DISTANCE_NORMALISED / prepared.normalisation.scale
+        distances = [refine_options.max_distance] if refine_options.max_distance else [max(coarse, fine), fine]
+        iterations = 0
+        for distance in distances:
+            rotation, translation, steps = refine(
+                prepared.source,
+                prepared.target,
+                rotation,
+                translation,
+                distance,
+                max_iterations=refine_options.max_iterations,
+                max_points=REFINE_MAX_POINTS,
+                max_seconds=REFINE_MAX_SECONDS,
+            )
+            iterations += steps
+        refinement = RefineReport(distances[-1], iterations, network_transform)
+    check = verify_alignment(prepared.source_check, prepared.target_check, rotation, translation, prepared.spacing)
+    return _Candidate(rotation, translation, refinement, check)
+
+
+def _result(
+    prepared: _Prepared, chosen: _Candidate, stage: Stage, options: RegistrationOptions, timings: dict[str, float]
+) -> RegistrationResult:
+    score = chosen.verification.score
+    fitness, inlier_rmse, threshold = score.fitness, score.inlier_rmse, score.threshold
+    if options.fitness_threshold is not None:  # the user's own inlier distance, on the full clouds
+        threshold = options.fitness_threshold
+        moved = apply_transform(prepared.source, chosen.rotation, chosen.translation)
+        fitness, inlier_rmse = fitness_and_rmse(moved, prepared.target, threshold)
     return RegistrationResult(
-        rotation=rotation,
-        translation=translation,
+        rotation=chosen.rotation,
+        translation=chosen.translation,
         fitness=fitness,
         inlier_rmse=inlier_rmse,
         fitness_threshold=threshold,
+        verified=chosen.verification.verified,
+        reason=chosen.verification.reason,
+        stage=stage,
         points=prepared.points,
-        refinement=refinement,
-        timings_ms={
-            "queue_ms": prediction.queue_ms,
-            "inference_ms": prediction.inference_ms,
-            "preprocess_ms": prepared.seconds * 1000.0,
-            "postprocess_ms": (time.perf_counter() - started) * 1000.0,
-            "batch_size": prediction.batch_size,
-        },
+        refinement=chosen.refinement,
+        timings_ms={"preprocess_ms": prepared.seconds * 1000.0, **timings},
     )
+
+
+def _finish(prepared: _Prepared, prediction: Prediction, options: RegistrationOptions) -> RegistrationResult:
+    """The network's answer, refined if asked, and checked."""
+    started = time.perf_counter()
+    rotation, translation = _user_transform(prepared, prediction, np.eye(3))
+    chosen = _checked(prepared, rotation, translation, options.refine)
+    timings = _model_timings([prediction]) | {"postprocess_ms": (time.perf_counter() - started) * 1000.0}
+    return _result(prepared, chosen, "ifnet", options, timings)
+
+
+def _finish_global(
+    prepared: _Prepared, predictions: list[Prediction], options: RegistrationOptions
+) -> RegistrationResult:
+    """The global path: the network's answers from the rotated starts, the most promising refined
+    and checked; if none is verified, feature matching (KISS-Matcher) refined and checked. The
+    best candidate wins, verified or not."""
+    started = time.perf_counter()
+    refine_options = options.refine or RefineOptions()  # the starts are coarse: every candidate is refined
+    ranked = []
+    for start, prediction in zip(STARTS, predictions, strict=True):
+        rotation, translation = _user_transform(prepared, prediction, start)
+        fitness = score_alignment(prepared.source_check, prepared.target_check, rotation, translation, prepared.spacing)
+        ranked.append((fitness.fitness, rotation, translation))
+    ranked.sort(key=lambda entry: -entry[0])
+    candidates = [
+        ("multistart", _checked(prepared, rotation, translation, refine_options))
+        for _, rotation, translation in ranked[:STARTS_REFINED]
+    ]
+    if not any(candidate.verification.verified for _, candidate in candidates):
+        rotation, translation = feature_match(prepared.source_check, prepared.target_check, prepared.spacing)
+        candidates.append(("features", _checked(prepared, rotation, translation, refine_options)))
+    stage, chosen = max(candidates, key=lambda entry: _rank(entry[1].verification))
+    timings = _model_timings(predictions) | {"postprocess_ms": (time.perf_counter() - started) * 1000.0}
+    return _result(prepared, chosen, stage, options, timings)
+
+
+def _rank(answer: Verification | RegistrationResult) -> tuple[bool, float]:
+    """Which answer to give: a verified one first, then the best fitting."""
+    fitness = answer.score.fitness if isinstance(answer, Verification) else answer.fitness
+    return answer.verified, fitness
+
+
+def _model_timings(predictions: list[Prediction]) -> dict[str, float]:
+    return {
+        "queue_ms": max(prediction.queue_ms for prediction in predictions),
+        "inference_ms": sum(prediction.inference_ms for prediction in predictions),
+        "batch_size": max(prediction.batch_size for prediction in predictions),
+    }
 
 
 async def register_clouds(
@@ -203,15 +299,28 @@ async def register_clouds(
 ) -> RegistrationResult:
     """Register `source` onto `target` (both N x 3 in user units, already through `as_points`).
 
-    `options.network_points` must be set (`resolve_options`). `predict` receives the two
+    `options.network_points` and `options.method` must be set (`resolve_options`). `predict` receives the two
     normalised float32 clouds [network_points, 3] and returns the transform between them (in
-    production: the batcher). The CPU-heavy steps run through `run_blocking` (a worker thread by
-    default) so that the event loop keeps serving. Raises InvalidInput for clouds that cannot be
-    registered.
+    production: the batcher). `options.method` picks the path: the network (`ifnet`), the global
+    search (`global`), or the network and, when its answer fails the check, the global search
+    (`auto`). The CPU-heavy steps run through `run_blocking` (a worker thread by default) so that
+    the event loop keeps serving. Raises InvalidInput for clouds that cannot be registered.
     """
     prepared = await run_blocking(_prepare, source, target, options, settings)
-    prediction = await predict(prepared.source_network, prepared.target_network)
-    return await run_blocking(_finish, prepared, prediction, options)
+    first = None
+    if options.method != "global":
+        prediction = await predict(prepared.source_network, prepared.target_network)
+        first = await run_blocking(_finish, prepared, prediction, options)
+        if first.verified or options.method == "ifnet":
+            return first
+    turned = [prepared.source_network @ start.T.astype(np.float32) for start in STARTS]
+    predictions = await asyncio.gather(*(predict(cloud, prepared.target_network) for cloud in turned))
+    found = await run_blocking(_finish_global, prepared, list(predictions), options)
+    if first is None:
+        return found
+    for name in ("inference_ms", "postprocess_ms"):  # the request paid for both paths
+        found.timings_ms[name] += first.timings_ms[name]
+    return found if _rank(found) > _rank(first) else first
 
 
 # ---------------------------------------------------------------- a request's pairs
@@ -225,7 +334,12 @@ def resolve_options(options: RegistrationOptions, service: ServiceState) -> Regi
         raise InvalidInput("network_points", f"is {count}, more than this service's limit of {limit}")
     if count is not None and count < fewest:
         raise InvalidInput("network_points", f"is {count}; this model needs at least {fewest} points per cloud")
-    return options.model_copy(update={"network_points": count or service.model.network_points})
+    return options.model_copy(
+        update={
+            "network_points": count or service.model.network_points,
+            "method": options.method or service.settings.default_method,
+        }
+    )
 
 
 async def register_pairs(
@@ -249,11 +363,13 @@ async def register_pairs(
 
     async def one(index: int, source: np.ndarray, target: np.ndarray) -> RegistrationResult:
         try:
-            return await register_clouds(source, target, options, service.settings, predict)
+            result = await register_clouds(source, target, options, service.settings, predict)
         except InvalidInput as error:
             if len(pairs) == 1:
                 raise
             raise InvalidInput(f"{error.field}[{index}]", error.problem) from None
+        service.metrics.answers.labels(result.stage, str(result.verified).lower()).inc()
+        return result
 
     async def all_pairs() -> list[RegistrationResult]:
         tasks = [asyncio.ensure_future(one(index, *pair)) for index, pair in enumerate(pairs)]

@@ -21,6 +21,7 @@ from pydantic_core import PydanticCustomError
 from service.validation import InvalidInput, as_points, as_rigid_transform
 
 Sampling = Literal["fps", "random"]
+Method = Literal["auto", "ifnet", "global"]
 
 
 def _example_pair() -> tuple[list[list[float]], list[list[float]], list[list[float]]]:
@@ -135,6 +136,12 @@ class RegistrationOptions(BaseModel):
         description="Points per cloud given to the network (default: the model's own count). Larger clouds are "
         "subsampled to it, smaller ones upsampled by repeating points. `max_points` is accepted as an older name.",
     )
+    method: Method | None = Field(
+        None,
+        description="`ifnet`: the network's answer, checked. `global`: a search that handles any rotation (the network "
+        "from 24 rotated starts, then feature matching), checked. `auto`: the network, and the search when its answer "
+        "fails the check. Default: the service's `IFNET_DEFAULT_METHOD` (`auto` unless set).",
+    )
     sampling: Sampling = Field(
         "fps", description="Subsampling: deterministic farthest-point (`fps`) or seeded random (`random`)."
     )
@@ -244,6 +251,9 @@ class RegisterResponse(BaseModel):
                     "fitness": 1.0,
                     "inlier_rmse": 0.009,
                     "fitness_threshold": 0.0486,
+                    "verified": True,
+                    "reason": None,
+                    "stage": "ifnet",
                     "points": {
                         "source": {"received": 48, "duplicates_removed": 0, "network_points": 768, "upsampled": True},
                         "target": {"received": 48, "duplicates_removed": 0, "network_points": 768, "upsampled": True},
@@ -275,7 +285,17 @@ class RegisterResponse(BaseModel):
     transform: Matrix4 = Field(description="[[rotation, translation], [0, 0, 0, 1]].")
     fitness: float = Field(description="Share of moved source points with a target point within fitness_threshold.")
     inlier_rmse: float = Field(description="RMS distance of those inlier pairs, your units.")
-    fitness_threshold: float
+    fitness_threshold: float = Field(
+        description="The inlier distance: 1.5 point spacings of the clouds unless the request set its own."
+    )
+    verified: bool = Field(
+        description="The answer passed the check: enough overlap both ways, the matching points pin the motion down, "
+        "and a refinement does not move it. False means do not trust it; `reason` says why."
+    )
+    reason: str | None = Field(None, description="Why the answer is not verified.")
+    stage: Literal["ifnet", "multistart", "features"] = Field(
+        description="What produced the answer: the network, the network from a rotated start, or feature matching."
+    )
     points: CloudPointCounts
     refinement: Refinement | None
     model: ModelDescription

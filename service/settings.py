@@ -71,6 +71,11 @@ class Settings(BaseSettings):
         ge=1024,
         description="Farthest-point sampling of larger clouds starts from a seeded random subset of this size.",
     )
+    default_method: Literal["auto", "ifnet", "global"] = Field(
+        "auto",
+        description="The registration method of requests that do not name one: `ifnet` bounds every request to one "
+        "model call, `auto` adds the global search where the network's answer fails its check.",
+    )
     warmup: bool = Field(True, description="Run the model once per batch size before reporting ready.")
     shutdown_timeout_s: float = Field(30.0, gt=0.0, description="Grace period for in-flight requests on SIGTERM.")
     log_level: Literal["critical", "error", "warning", "info", "debug"] = "info"

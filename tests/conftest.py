@@ -22,6 +22,13 @@ SHIPPED_MODEL = REPO / "service" / "models" / "ifnet.onnx"
 TINY_MODEL_POINTS = 64
 
 
+def pytest_configure(config):
+    """The service's tests run the network path unless they ask for another: the tiny test model's
+    answers always fail the check, and the global path would multiply every request's model calls.
+    Tests of `auto` and `global` name the method (or set IFNET_DEFAULT_METHOD) themselves."""
+    os.environ["IFNET_DEFAULT_METHOD"] = "ifnet"
+
+
 @pytest.fixture
 def anyio_backend() -> str:
     return "asyncio"
@@ -232,13 +239,15 @@ def service_process(tmp_path: Path, model: Path, **settings: str):
             process.wait(timeout=60)
 
 
-def pipeline_inputs(network_points: int, *, min_points: int = 32, max_cloud_points: int = 500_000, **options):
+def pipeline_inputs(
+    network_points: int, *, min_points: int = 32, max_cloud_points: int = 500_000, method: str = "ifnet", **options
+):
     """The options and settings that service.registration.register_clouds takes, for tests of the pipeline alone."""
     from service.schemas import RegistrationOptions
     from service.settings import Settings
 
     settings = Settings(min_points=min_points, max_cloud_points=max_cloud_points)
-    return RegistrationOptions(network_points=network_points, **options), settings
+    return RegistrationOptions(network_points=network_points, method=method, **options), settings
 
 
 CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")

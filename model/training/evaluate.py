@@ -24,7 +24,7 @@ os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 import numpy as np  # noqa: E402
 
 from model.cli import UserError, non_negative_float, non_negative_int, positive_int, reports_user_errors
-from model.geometry import from_matrix, icp_refine, registration_errors, summarise_errors
+from model.geometry import from_matrix, refine, registration_errors, summarise_errors
 from model.training.data import DEFAULT_DATA_DIR, Protocol, load_split, make_pair
 
 # Correspondence distance of every ICP here, in unit-sphere units: large enough to pull in a
@@ -123,7 +123,7 @@ def open3d_baselines() -> dict[str, Registration]:
         )
         # The same ICP as the "IFNet + ICP" row, so the two rows differ only in the coarse step.
         coarse_rotation, coarse_translation = from_matrix(np.asarray(coarse.transformation))
-        rotation, translation, _ = icp_refine(source, target, coarse_rotation, coarse_translation, ICP_DISTANCE)
+        rotation, translation, _ = refine(source, target, coarse_rotation, coarse_translation, ICP_DISTANCE, "ICP")
         return rotation, translation
 
     o3d.utility.random.seed(0)
@@ -149,7 +149,7 @@ def evaluate_methods(
             runs[name].append((rotation, translation, time.perf_counter() - started))
         rotation, translation, network_seconds = runs["IFNet"][-1]
         started = time.perf_counter()
-        rotation, translation, _ = icp_refine(source, target, rotation, translation, ICP_DISTANCE)
+        rotation, translation, _ = refine(source, target, rotation, translation, ICP_DISTANCE, "ICP")
         runs[REFINED].append((rotation, translation, network_seconds + time.perf_counter() - started))
 
     truth_r = np.stack([p["rotation"] for p in pairs]).astype(np.float64)

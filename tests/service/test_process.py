@@ -98,6 +98,7 @@ def test_the_command_line_client_sends_its_options(tmp_path, monkeypatch, capsys
     def register_files(self, source, target, **options):
         sent.update(options)
         return {"transform": np.eye(4).tolist(), "fitness": 1.0, "inlier_rmse": 0.0, "fitness_threshold": 0.1,
+                "verified": False, "reason": "low overlap", "stage": "features",
                 "model": {"name": "ifnet", "version": "0" * 12}, "timings_ms": {"total_ms": 1.0}}  # fmt: skip
 
     monkeypatch.setattr(client.RegistrationClient, "register_files", register_files)
@@ -112,6 +113,8 @@ def test_the_command_line_client_sends_its_options(tmp_path, monkeypatch, capsys
         "random",
         "--seed",
         "3",
+        "--method",
+        "global",
     ]
     assert client.main(argv) == 0
     assert sent == {
@@ -120,8 +123,11 @@ def test_the_command_line_client_sends_its_options(tmp_path, monkeypatch, capsys
         "network_points": 512,
         "sampling": "random",
         "seed": 3,
+        "method": "global",
     }
-    assert capsys.readouterr().out.startswith("transform (source -> target):")
+    printed = capsys.readouterr().out
+    assert printed.startswith("transform (source -> target):")
+    assert "NOT verified: low overlap  (stage features)" in printed
 
 
 def test_sigterm_finishes_in_flight_requests_then_exits(tmp_path, tiny_model):

@@ -13,7 +13,9 @@ import pytest
 from conftest import pipeline_inputs
 
 from model.geometry import (
+    INLIER_SPACINGS,
     NETWORK_RADIUS,
+    REFINE_SPACINGS,
     apply_transform,
     degeneracy,
     euler_to_matrix,
@@ -125,8 +127,10 @@ def test_refinement_corrects_a_network_error_in_user_units(real_scans):
     assert 2.9 < network_error < 3.1
     assert rotation_angle_deg(result.rotation, TRUE_ROTATION) < 0.01
     assert np.linalg.norm(result.translation - TRUE_TRANSLATION) < 1e-4 * radius(source)
-    # The default correspondence distance is 0.05 in the normalised frame, in metres here.
-    assert result.refinement.max_distance == pytest.approx(0.05 * radius(source) / NETWORK_RADIUS, rel=0.05)
+    # The default correspondence distance and the inlier distance both follow the clouds' point spacing.
+    spacing = result.fitness_threshold / INLIER_SPACINGS
+    assert result.refinement.max_distance == pytest.approx(REFINE_SPACINGS * spacing)
+    assert result.verified and result.reason is None and result.stage == "ifnet"
     assert result.refinement.iterations >= 1
     assert result.fitness > 0.99
 

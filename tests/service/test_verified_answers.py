@@ -1,0 +1,99 @@
+"""Right or flagged: every answer says whether it passed the check (`verified`, `reason`) and
+which stage gave it; `auto` falls back to the global search, which handles any rotation."""
+
+import io
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from model.geometry import apply_transform, euler_to_matrix, from_matrix, rotation_angle_deg
+from service.formats import read_cloud_file
+from service.settings import Settings
+
+pytestmark = pytest.mark.anyio
+
+EXAMPLES = Path(__file__).resolve().parents[2] / "examples"
+TRUTH = np.loadtxt(EXAMPLES / "true_transform.txt")
+TURN = euler_to_matrix([150.0, 40.0, -70.0])  # far outside the network's 45 degrees per axis
+
+
+def sample_pair(turned: bool) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The shipped sample pair, its source optionally turned first: (source, target, true 4x4)."""
+    source = read_cloud_file(EXAMPLES / "source.ply")
+    target = read_cloud_file(EXAMPLES / "target.pcd")
+    if not turned:
+        return source, target, TRUTH
+    turned_source = apply_transform(source, TURN, np.zeros(3))
+    undo = np.eye(4)
+    undo[:3, :3] = TURN.T
+    return turned_source, target, TRUTH @ undo
+
+
+def npz(source: np.ndarray, target: np.ndarray) -> bytes:
+    archive = io.BytesIO()
+    np.savez(archive, source=source, target=target)
+    return archive.getvalue()
+
+
+async def register(client, source, target, **options) -> dict:
+    import json
+
+    answer = await client.post(
+        "/register",
+        content=npz(source, target),
+        headers={"Content-Type": "application/x-npz"},
+        params={"options": json.dumps(options)},
+    )
+    assert answer.status_code == 200, answer.text
+    return answer.json()
+
+
+def rotation_error(answer: dict, truth: np.ndarray) -> float:
+    return float(rotation_angle_deg(from_matrix(np.asarray(answer["transform"]))[0], truth[:3, :3]))
+
+
+async def test_a_right_answer_is_verified(serve, shipped_model):
+    source, target, truth = sample_pair(turned=False)
+    async with serve(Settings(model_path=shipped_model, warmup=False)) as (_, client):
+        answer = await register(client, source, target, method="ifnet", refine=True)
+    assert rotation_error(answer, truth) < 0.5
+    assert answer["verified"] is True and answer["reason"] is None and answer["stage"] == "ifnet"
+    assert answer["fitness"] > 0.5 and answer["fitness_threshold"] > 0
+
+
+@pytest.mark.slow
+async def test_auto_finds_a_large_rotation_the_network_alone_gets_wrong(serve, shipped_model):
+    source, target, truth = sample_pair(turned=True)
+    async with serve(Settings(model_path=shipped_model, warmup=False)) as (_, client):
+        network = await register(client, source, target, method="ifnet", refine=True)
+        auto = await register(client, source, target, method="auto")
+        metrics = (await client.get("/metrics")).text
+    assert rotation_error(network, truth) > 10 and network["verified"] is False and network["reason"]
+    assert rotation_error(auto, truth) < 1.0, auto
+    assert auto["verified"] is True and auto["stage"] in ("multistart", "features")
+    assert 'ifnet_answers_total{stage="ifnet",verified="false"} 1.0' in metrics
+    assert f'ifnet_answers_total{{stage="{auto["stage"]}",verified="true"}} 1.0' in metrics
+
+
+@pytest.mark.slow
+async def test_clouds_with_nothing_in_common_get_a_flagged_answer_not_an_error(serve, shipped_model):
+    rng = np.random.default_rng(4)
+    source, target = rng.normal(size=(500, 3)), rng.uniform(-1.0, 1.0, size=(500, 3)) * [3.0, 0.2, 0.2]
+    async with serve(Settings(model_path=shipped_model, warmup=False)) as (_, client):
+        answer = await register(client, source, target, method="global")
+    assert answer["verified"] is False and answer["reason"]
+    assert answer["stage"] in ("multistart", "features")
+
+
+@pytest.mark.parametrize("method", ["best", "", 1, None])
+async def test_unknown_methods_are_refused_naming_the_field(serve, tiny_model, method):
+    async with serve(Settings(model_path=tiny_model, warmup=False)) as (_, client):
+        answer = await client.post(
+            "/register", json={"source": [[0, 0, 0]] * 3, "target": [[0, 0, 0]] * 3, "method": method}
+        )
+    if method is None:  # null is the service's default method
+        assert answer.status_code == 422 and answer.json()["errors"][0]["field"] == "source"
+        return
+    assert answer.status_code == 422
+    assert answer.json()["errors"][0]["field"] == "method"
