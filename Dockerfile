@@ -73,7 +73,7 @@ RUN test -f /opt/app/service/models/ifnet.onnx \
  && find /opt/app -depth -type d -name __pycache__ -exec rm -rf {} + \
  && /opt/venv/bin/python -m compileall -q /opt/app >/dev/null \
  && cd /opt/app \
- && /opt/venv/bin/python -c "import service.app, model.geometry, scipy.spatial.transform, small_gicp; \
+ && /opt/venv/bin/python -c "import service.app, model.geometry, scipy.spatial.transform, small_gicp, kiss_matcher, lzf; \
 from service.engine import OnnxEngine; from service.settings import DEFAULT_MODEL_PATH; OnnxEngine(DEFAULT_MODEL_PATH, 1)"
 
 # IFNET_THREADS is deliberately unset: the service then sizes ONNX Runtime to the CPUs this
