@@ -148,6 +148,8 @@ def peers(args) -> int:
         )
     if args.scans:
         sets["real scans"] = [harness.scan_pair(spec, args.seed, max_angle_deg=args.scan_angle) for spec in args.scans]
+    if args.truth_pairs:
+        sets["real pairs with ground truth"] = harness.truth_pairs()
     with harness.Service() as service:
         methods = Methods(args, service)
         warm = next(iter(sets.values()))[0]
@@ -209,6 +211,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--modelnet-pairs", type=int, default=25)
     p.add_argument("--scans", nargs="*", default=list(DEFAULT_SCANS), help="archive/name of scans in the shared data")
     p.add_argument("--scan-angle", type=float, default=30.0, help="largest rotation of a scan pair, degrees")
+    p.add_argument("--truth-pairs", action=argparse.BooleanOptionalAction, default=True, help="the real indoor pairs")
     p.add_argument("--request", action="append", default=None, help="NAME=JSON options: one service row each")
     p.add_argument("--tight-max-points", type=int, default=5000, help="open3d-tight only on pairs this small")
     p.add_argument("--seed", type=int, default=0)

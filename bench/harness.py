@@ -245,6 +245,19 @@ def scan_pair(spec: str, seed: int = 0, keep: float = 0.7, max_angle_deg: float 
     return Pair(spec, source, view @ rotation.T + translation, rotation, translation, scan_voxel(archive, name))
 
 
+def truth_pairs() -> list[Pair]:
+    """The real pairs with ground truth in the shared data (indoor_pairs.npz: NAME/source, NAME/target, NAME/T)."""
+    pairs = []
+    with np.load(DATA / "indoor_pairs.npz") as data:
+        for name in sorted({key.split("/")[0] for key in data.files}):
+            transform = data[f"{name}/T"].astype(np.float64)
+            source, target = (data[f"{name}/{part}"].astype(np.float64) for part in ("source", "target"))
+            pairs.append(
+                Pair(f"indoor_pairs/{name}", source, target, transform[:3, :3], transform[:3, 3], VOXEL_OBJECTS_INDOOR)
+            )
+    return pairs
+
+
 # ---------------------------------------------------------------- the classical peers
 
 
