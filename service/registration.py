@@ -10,6 +10,7 @@ inlier RMSE). `register_pairs` runs a request's pairs through it and the shared 
 """
 
 import asyncio
+import dataclasses
 import time
 from collections.abc import AsyncIterator, Awaitable, Callable
 from contextlib import asynccontextmanager
@@ -32,6 +33,7 @@ from model.geometry import (
     point_spacing,
     refine,
     resample_indices,
+    rotation_angle_deg,
     score_alignment,
     subset,
     to_matrix,
@@ -45,15 +47,16 @@ from service.validation import InvalidInput, check_cloud
 
 # small_gicp holds the interpreter lock: a subset of each cloud and a time limit keep one refinement
 # from stalling the event loop or a worker thread for long.
-REFINE_MAX_POINTS = 50_000
+REFINE_MAX_POINTS = 20_000
 # The refinement's first, coarse pass, in normalised units (clouds of radius NETWORK_RADIUS).
 COARSE_DISTANCE_NORMALISED = 0.05
 REFINE_MAX_SECONDS = 10.0
-CHECK_MAX_POINTS = 30_000  # the answer check's cost stays bounded on large scans
+CHECK_MAX_POINTS = 20_000  # the answer check's cost stays bounded on large scans
 # The global path's starts: the 24 rotations of a cube, every rotation within the network's range
 # of one of them; the network's answers from the best few (by fitness) are refined and checked.
 STARTS = Rotation.create_group("O").as_matrix()
 STARTS_REFINED = 3
+AGREEMENT_DEG = 5.0  # two verified answers further apart than this contradict each other
 Stage = Literal["ifnet", "multistart", "features"]
 
 T = TypeVar("T")
@@ -249,30 +252,33 @@ def _finish(prepared: _Prepared, prediction: Prediction, options: RegistrationOp
     return _result(prepared, chosen, "ifnet", options, timings)
 
 
-def _finish_global(
+def _finish_features(prepared: _Prepared, options: RegistrationOptions) -> RegistrationResult:
+    """Feature matching (KISS-Matcher), whatever the rotation, refined and checked."""
+    started = time.perf_counter()
+    rotation, translation = feature_match(prepared.source_check, prepared.target_check, prepared.spacing)
+    chosen = _checked(prepared, rotation, translation, options.refine or RefineOptions())  # a coarse answer
+    postprocess_ms = (time.perf_counter() - started) * 1000.0
+    timings = {"queue_ms": 0.0, "inference_ms": 0.0, "batch_size": 0, "postprocess_ms": postprocess_ms}
+    return _result(prepared, chosen, "features", options, timings)
+
+
+def _finish_multistart(
     prepared: _Prepared, predictions: list[Prediction], options: RegistrationOptions
 ) -> RegistrationResult:
-    """The global path: the network's answers from the rotated starts, the most promising refined
-    and checked; if none is verified, feature matching (KISS-Matcher) refined and checked. The
-    best candidate wins, verified or not."""
+    """The network's answers from the rotated starts: the best few by fitness refined and checked."""
     started = time.perf_counter()
-    refine_options = options.refine or RefineOptions()  # the starts are coarse: every candidate is refined
     ranked = []
     for start, prediction in zip(STARTS, predictions, strict=True):
         rotation, translation = _user_transform(prepared, prediction, start)
         fitness = score_alignment(prepared.source_check, prepared.target_check, rotation, translation, prepared.spacing)
         ranked.append((fitness.fitness, rotation, translation))
     ranked.sort(key=lambda entry: -entry[0])
-    candidates = [
-        ("multistart", _checked(prepared, rotation, translation, refine_options))
-        for _, rotation, translation in ranked[:STARTS_REFINED]
-    ]
-    if not any(candidate.verification.verified for _, candidate in candidates):
-        rotation, translation = feature_match(prepared.source_check, prepared.target_check, prepared.spacing)
-        candidates.append(("features", _checked(prepared, rotation, translation, refine_options)))
-    stage, chosen = max(candidates, key=lambda entry: _rank(entry[1].verification))
+    refine_options = options.refine or RefineOptions()  # the starts are coarse: every candidate is refined
+    best = ranked[:STARTS_REFINED]
+    candidates = [_checked(prepared, rotation, translation, refine_options) for _, rotation, translation in best]
+    chosen = max(candidates, key=lambda candidate: _rank(candidate.verification))
     timings = _model_timings(predictions) | {"postprocess_ms": (time.perf_counter() - started) * 1000.0}
-    return _result(prepared, chosen, stage, options, timings)
+    return _result(prepared, chosen, "multistart", options, timings)
 
 
 def _rank(answer: Verification | RegistrationResult) -> tuple[bool, float]:
@@ -307,20 +313,37 @@ async def register_clouds(
     the event loop keeps serving. Raises InvalidInput for clouds that cannot be registered.
     """
     prepared = await run_blocking(_prepare, source, target, options, settings)
-    first = None
+    answers = []
     if options.method != "global":
         prediction = await predict(prepared.source_network, prepared.target_network)
-        first = await run_blocking(_finish, prepared, prediction, options)
-        if first.verified or options.method == "ifnet":
-            return first
-    turned = [prepared.source_network @ start.T.astype(np.float32) for start in STARTS]
-    predictions = await asyncio.gather(*(predict(cloud, prepared.target_network) for cloud in turned))
-    found = await run_blocking(_finish_global, prepared, list(predictions), options)
-    if first is None:
-        return found
-    for name in ("inference_ms", "postprocess_ms"):  # the request paid for both paths
-        found.timings_ms[name] += first.timings_ms[name]
-    return found if _rank(found) > _rank(first) else first
+        answers.append(await run_blocking(_finish, prepared, prediction, options))
+        if not answers[0].verified and options.method == "ifnet":
+            return answers[0]
+    # Feature matching: the global path's cheapest stage, and a second opinion on a verified answer.
+    features = await run_blocking(_finish_features, prepared, options)
+    answers.append(features)
+    if not any(answer.verified for answer in answers):
+        turned = [prepared.source_network @ start.T.astype(np.float32) for start in STARTS]
+        predictions = await asyncio.gather(*(predict(cloud, prepared.target_network) for cloud in turned))
+        answers.append(await run_blocking(_finish_multistart, prepared, list(predictions), options))
+    best = max(answers, key=_rank)
+    for answer in answers:  # the request paid for every stage that ran
+        if answer is not best:
+            for name in ("inference_ms", "postprocess_ms"):
+                best.timings_ms[name] += answer.timings_ms[name]
+    return _unless_contradicted(best, answers)
+
+
+def _unless_contradicted(best: RegistrationResult, answers: list[RegistrationResult]) -> RegistrationResult:
+    """A verified answer that another verified answer contradicts is not verified: both fit, so the
+    clouds (a symmetric object, a repetitive scene) do not tell which is right."""
+    if not best.verified:
+        return best
+    apart = max(float(rotation_angle_deg(best.rotation, other.rotation)) for other in answers if other.verified)
+    if apart <= AGREEMENT_DEG:
+        return best
+    reason = f"ambiguous: another answer {apart:.0f} degrees away fits as well (a symmetric shape?)"
+    return dataclasses.replace(best, verified=False, reason=reason)
 
 
 # ---------------------------------------------------------------- a request's pairs

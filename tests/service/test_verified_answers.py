@@ -97,3 +97,38 @@ async def test_unknown_methods_are_refused_naming_the_field(serve, tiny_model, m
         return
     assert answer.status_code == 422
     assert answer.json()["errors"][0]["field"] == "method"
+
+
+def box_surface(count: int, rng: np.random.Generator) -> np.ndarray:
+    """Points on the surface of a 4 x 2 x 1 box centred on the origin: it fits itself turned 180
+    degrees about any of its axes."""
+    half = np.array([2.0, 1.0, 0.5])
+    points = rng.uniform(-1.0, 1.0, size=(count, 3)) * half
+    axis = rng.integers(0, 3, size=count)
+    points[np.arange(count), axis] = rng.choice([-1.0, 1.0], size=count) * half[axis]
+    return points
+
+
+def test_an_answer_another_answer_contradicts_is_not_verified():
+    """The "network" answers the box turned 180 degrees, a fit as good as the true motion's, which
+    feature matching finds: two verified answers contradict each other, so neither is verified."""
+    import asyncio
+
+    from conftest import pipeline_inputs
+
+    from service.batcher import Prediction
+    from service.registration import register_clouds
+
+    rng = np.random.default_rng(5)
+    rotation = euler_to_matrix([20.0, 10.0, 5.0])
+    source = box_surface(3000, rng)
+    target = source @ rotation.T
+    flip = rotation @ np.diag([-1.0, -1.0, 1.0]) @ rotation.T  # half a turn about the box's own short axis
+
+    async def flipped(source_n, target_n):
+        return Prediction(flip @ rotation, np.zeros(3))  # each cloud is centred on its centroid, the box's centre
+
+    options, settings = pipeline_inputs(768, refine={}, method="ifnet")
+    answer = asyncio.run(register_clouds(source, target, options, settings, flipped))
+    assert answer.verified is False and answer.reason.startswith("ambiguous"), answer.reason
+    assert answer.stage in ("ifnet", "features")  # whichever fits best, flagged
