@@ -106,9 +106,10 @@ async def register(
     started = time.perf_counter()
     async with request_deadline(service.settings):
         source, target, parsed = await read_register_body(request, options, service.settings)
+        read_ms = (time.perf_counter() - started) * 1000.0
         (result,) = await register_pairs(service, request, [(source, target)], parsed)
     total_ms = (time.perf_counter() - started) * 1000.0
-    return RegisterResponse.from_result(result, service.model_description(), total_ms)
+    return RegisterResponse.from_result(result, service.model_description(), read_ms, total_ms)
 
 
 @router.get(

@@ -229,10 +229,11 @@ class ModelDescription(BaseModel):
 class Timings(BaseModel):
     model_config = ConfigDict(from_attributes=True)
 
+    read_ms: float = Field(0.0, description="Receiving and parsing the body (JSON, files or arrays).")
     queue_ms: float = Field(description="Wait in the batcher's queue.")
-    inference_ms: float = Field(description="The model call (shared by the whole batch).")
-    preprocess_ms: float
-    postprocess_ms: float = Field(description="Mapping back, refinement and scoring.")
+    inference_ms: float = Field(description="Model calls (each shared by its whole batch).")
+    preprocess_ms: float = Field(description="Checks, duplicate removal, sampling and normalisation.")
+    postprocess_ms: float = Field(description="Mapping back, refinement, the check and the global path's matching.")
     total_ms: float
     batch_size: int = Field(description="Pairs in the model call that served this one.")
 
@@ -268,6 +269,7 @@ class RegisterResponse(BaseModel):
                         "network_points": 768,
                     },
                     "timings_ms": {
+                        "read_ms": 0.9,
                         "queue_ms": 0.1,
                         "inference_ms": 88.7,
                         "preprocess_ms": 1.1,
@@ -302,10 +304,11 @@ class RegisterResponse(BaseModel):
     timings_ms: Timings
 
     @classmethod
-    def from_result(cls, result: Any, model: ModelDescription, total_ms: float) -> "RegisterResponse":
+    def from_result(cls, result: Any, model: ModelDescription, read_ms: float, total_ms: float) -> "RegisterResponse":
         """The answer from the pipeline's result, whose attributes carry the response's names."""
         fields = {name: getattr(result, name) for name in cls.model_fields if hasattr(result, name)}
-        return cls.model_validate({**fields, "model": model, "timings_ms": {**result.timings_ms, "total_ms": total_ms}})
+        timings = {**result.timings_ms, "read_ms": read_ms, "total_ms": total_ms}
+        return cls.model_validate({**fields, "model": model, "timings_ms": timings})
 
 
 class FieldError(BaseModel):

@@ -83,6 +83,7 @@ async def test_register_answers_with_a_consistent_transform(serve, tiny_model):
     )
     timings = answer["timings_ms"]
     assert timings["batch_size"] == 1 and timings["total_ms"] >= timings["inference_ms"] >= 0
+    assert timings["total_ms"] >= timings["read_ms"] > 0
 
 
 async def test_user_thresholds_reach_the_pipeline_and_are_echoed(serve, tiny_model):
