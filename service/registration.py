@@ -326,7 +326,8 @@ async def register_clouds(
         turned = [prepared.source_network @ start.T.astype(np.float32) for start in STARTS]
         predictions = await asyncio.gather(*(predict(cloud, prepared.target_network) for cloud in turned))
         answers.append(await run_blocking(_finish_multistart, prepared, list(predictions), options))
-    best = max(answers, key=_rank)
+    # `ifnet` answers with the network, whatever else fits; the other stages only judge it.
+    best = answers[0] if options.method == "ifnet" else max(answers, key=_rank)
     for answer in answers:  # the request paid for every stage that ran
         if answer is not best:
             for name in ("inference_ms", "postprocess_ms"):
