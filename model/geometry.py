@@ -463,16 +463,23 @@ def refine(
 # ---------------------------------------------------------------- feature-based global registration
 
 FEATURE_VOXEL_SPACINGS = 1.5  # KISS-Matcher's voxel size, in point spacings
+FEATURE_VOXEL = 0.05  # the clouds are scaled so that the voxel is this: KISS-Matcher refuses tiny voxels
 
 
 def feature_match(source: np.ndarray, target: np.ndarray, spacing: float) -> tuple[np.ndarray, np.ndarray]:
     """(R, t) from matching local features (KISS-Matcher), whatever the rotation: a coarse answer
-    to refine. Identity where the matcher finds nothing."""
+    to refine. Identity where the matcher finds nothing (the answer's check then fails)."""
     import kiss_matcher  # imported here so that the rest of this module needs only numpy/scipy
 
-    matcher = kiss_matcher.KISSMatcher(kiss_matcher.KISSMatcherConfig(FEATURE_VOXEL_SPACINGS * spacing))
-    found = matcher.estimate(np.ascontiguousarray(source, np.float64), np.ascontiguousarray(target, np.float64))
+    scale = FEATURE_VOXEL / (FEATURE_VOXEL_SPACINGS * spacing) if spacing > 0 else 1.0
+    matcher = kiss_matcher.KISSMatcher(kiss_matcher.KISSMatcherConfig(FEATURE_VOXEL))
+    try:
+        found = matcher.estimate(
+            np.ascontiguousarray(source * scale, np.float64), np.ascontiguousarray(target * scale, np.float64)
+        )
+    except RuntimeError:  # the matcher's own refusals (too few points or features)
+        return np.eye(3), np.zeros(3)
     rotation, translation = np.asarray(found.rotation, np.float64), np.asarray(found.translation, np.float64)
     if not (np.isfinite(rotation).all() and np.isfinite(translation).all()):
         return np.eye(3), np.zeros(3)
-    return nearest_rotation(rotation), translation.reshape(3)
+    return nearest_rotation(rotation), translation.reshape(3) / scale

@@ -119,3 +119,20 @@ def test_refine_recovers_a_few_degrees_at_the_spacing_distance(method):
     assert rotation_angle_deg(refined_rotation, rotation) < 0.5
     assert np.linalg.norm(refined_translation - translation) < 0.01
     assert iterations >= 1
+
+
+def test_feature_matching_finds_any_rotation_at_any_scale():
+    """KISS-Matcher refuses voxels below a few millimetres; the clouds are rescaled for it, so a
+    small object in metres registers as well as a large one."""
+    pytest.importorskip("kiss_matcher")
+    from model.geometry import euler_to_matrix, feature_match, point_spacing, rotation_angle_deg
+
+    rng = np.random.default_rng(2)
+    rotation, translation = euler_to_matrix([120.0, -35.0, 80.0]), np.array([0.3, -0.1, 0.2])
+    blob = rng.normal(size=(4000, 3)) * [3.0, 2.0, 1.0] + np.sin(rng.normal(size=(4000, 1)) * [1.0, 2.0, 3.0])
+    for size in (1.0, 0.005):  # a metre-sized shape, and one of a few millimetres
+        source = blob * size
+        target = source @ rotation.T + translation * size
+        found_rotation, found_translation = feature_match(source, target, point_spacing(source))
+        assert rotation_angle_deg(found_rotation, rotation) < 2.0, size
+        assert np.linalg.norm(found_translation - translation * size) < 0.05 * size
