@@ -264,8 +264,9 @@ def _finish_features(prepared: _Prepared, options: RegistrationOptions) -> Regis
 
 def _finish_multistart(
     prepared: _Prepared, predictions: list[Prediction], options: RegistrationOptions
-) -> RegistrationResult:
-    """The network's answers from the rotated starts: the best few by fitness refined and checked."""
+) -> list[RegistrationResult]:
+    """The network's answers from the rotated starts: the best few by fitness, each refined and
+    checked (every one of them can contradict another)."""
     started = time.perf_counter()
     ranked = []
     for start, prediction in zip(STARTS, predictions, strict=True):
@@ -276,9 +277,10 @@ def _finish_multistart(
     refine_options = options.refine or RefineOptions()  # the starts are coarse: every candidate is refined
     best = ranked[:STARTS_REFINED]
     candidates = [_checked(prepared, rotation, translation, refine_options) for _, rotation, translation in best]
-    chosen = max(candidates, key=lambda candidate: _rank(candidate.verification))
     timings = _model_timings(predictions) | {"postprocess_ms": (time.perf_counter() - started) * 1000.0}
-    return _result(prepared, chosen, "multistart", options, timings)
+    first, *others = [_result(prepared, candidate, "multistart", options, timings) for candidate in candidates]
+    free = {"queue_ms": 0.0, "inference_ms": 0.0, "batch_size": 0, "postprocess_ms": 0.0}
+    return [first, *(dataclasses.replace(other, timings_ms=dict(free)) for other in others)]  # paid once
 
 
 def _rank(answer: Verification | RegistrationResult) -> tuple[bool, float]:
@@ -325,13 +327,14 @@ async def register_clouds(
     if not any(answer.verified for answer in answers):
         turned = [prepared.source_network @ start.T.astype(np.float32) for start in STARTS]
         predictions = await asyncio.gather(*(predict(cloud, prepared.target_network) for cloud in turned))
-        answers.append(await run_blocking(_finish_multistart, prepared, list(predictions), options))
+        answers += await run_blocking(_finish_multistart, prepared, list(predictions), options)
     # `ifnet` answers with the network, whatever else fits; the other stages only judge it.
     best = answers[0] if options.method == "ifnet" else max(answers, key=_rank)
     for answer in answers:  # the request paid for every stage that ran
         if answer is not best:
             for name in ("inference_ms", "postprocess_ms"):
                 best.timings_ms[name] += answer.timings_ms[name]
+            best.timings_ms["batch_size"] = max(best.timings_ms["batch_size"], answer.timings_ms["batch_size"])
     return _unless_contradicted(best, answers)
 
 
