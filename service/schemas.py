@@ -251,7 +251,7 @@ class RegisterResponse(BaseModel):
                     "transform": EXAMPLE_ANSWER,
                     "fitness": 1.0,
                     "inlier_rmse": 0.009,
-                    "fitness_threshold": 0.0486,
+                    "fitness_threshold": 0.1548,
                     "verified": True,
                     "reason": None,
                     "stage": "ifnet",
