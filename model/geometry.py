@@ -276,6 +276,7 @@ MIN_FITNESS = 0.3  # both ways: below it the clouds hardly touch, and a refineme
 MAX_DRIFT_SPACINGS = 0.2  # a right answer is where refine() settles; wrong ones slide on
 MIN_CONSTRAINT = 0.02  # inliers on one plane or one cylinder can slide along it without losing fit
 MIN_INLIERS = 30  # fewer matching points prove nothing
+CHECK_REFINE_SECONDS = 10.0  # the check's refinement stops here at the latest
 
 
 class AlignmentScore(NamedTuple):
@@ -388,7 +389,10 @@ def verify_alignment(
     if spacing is None:
         spacing = max(point_spacing(source), point_spacing(target))
     score = score_alignment(source, target, rotation, translation, spacing)
-    refined_rotation, refined_translation, _ = refine(source, target, rotation, translation, spacing=spacing)
+    # A few iterations per small_gicp call, so that a caller's other threads are not stalled for long.
+    refined_rotation, refined_translation, _ = refine(
+        source, target, rotation, translation, spacing=spacing, max_seconds=CHECK_REFINE_SECONDS
+    )
     moved = apply_transform(source, rotation, translation)
     shift = apply_transform(source, refined_rotation, refined_translation) - moved
     drift = float(np.sqrt(np.mean(np.sum(shift**2, axis=1))) / spacing) if spacing > 0 else float("inf")
