@@ -5,8 +5,10 @@ the optional initial guess to the source, resamples each cloud to the network's 
 centres each and scales both by one common factor to the network's radius
 (`model.geometry.NETWORK_RADIUS`), asks the model (any async callable) for the transform between
 the normalised clouds, maps it back into the user's units, composes it with the initial guess,
-optionally refines it with ICP on the full clouds, and scores it (Open3D-style fitness and
-inlier RMSE). `register_pairs` runs a request's pairs through it and the shared batcher.
+optionally refines it (GICP on the full clouds) and checks it (`model.geometry.verify_alignment`).
+Where the method allows and the answer fails the check, the global path follows: feature
+matching, then the network from rotated starts. `register_pairs` runs a request's pairs through
+it and the shared batcher.
 """
 
 import asyncio
@@ -286,10 +288,9 @@ def _finish_multistart(
     return [first, *(dataclasses.replace(other, timings_ms=dict(free)) for other in others)]  # paid once
 
 
-def _rank(answer: Verification | RegistrationResult) -> tuple[bool, float]:
+def _rank(answer: RegistrationResult) -> tuple[bool, float]:
     """Which answer to give: a verified one first, then the best fitting."""
-    fitness = answer.score.fitness if isinstance(answer, Verification) else answer.fitness
-    return answer.verified, fitness
+    return answer.verified, answer.fitness
 
 
 def _model_timings(predictions: list[Prediction]) -> dict[str, float]:
