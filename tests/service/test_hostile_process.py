@@ -127,3 +127,33 @@ def test_an_early_answer_closes_a_connection_whose_body_trickles_on(tmp_path, ti
                     connection.sendall(b"x")
                     time.sleep(0.5)
             assert time.perf_counter() - started < 13
+
+
+@pytest.mark.slow
+def test_damaged_files_never_get_a_5xx_and_health_answers_throughout(tmp_path, tiny_model):
+    """The property test's damaged PLY, PCD, NPY and NPZ bodies, sent to a real process: every
+    answer is a 2xx or 4xx within the request timeout, and /health answers within 1 s meanwhile."""
+    from hypothesis import HealthCheck, given, settings
+    from test_hostile_properties import BODY_LIMIT, VALID_CLOUDS, VALID_PAIRS, damaged
+
+    timeout_s = 30.0
+    service = service_process(tmp_path, tiny_model, max_body_bytes=str(BODY_LIMIT), request_timeout_s=str(timeout_s))
+    with service as (_, url, _), HealthWatch(url) as watch, httpx.Client(base_url=url, timeout=60) as client:
+
+        @settings(max_examples=80, deadline=None, derandomize=True, suppress_health_check=list(HealthCheck))
+        @given(damaged())
+        def answered(case):
+            kind, data = case
+            started = time.perf_counter()
+            if kind in VALID_CLOUDS:
+                other = VALID_CLOUDS["npy"]
+                answer = client.post("/register", files={"source": ("s", data), "target": ("t", other)})
+            else:
+                assert kind in VALID_PAIRS
+                answer = client.post("/register", content=data, headers={"Content-Type": "application/octet-stream"})
+            assert answer.status_code < 500, f"{kind}: {answer.status_code} {answer.text[:300]}"
+            assert time.perf_counter() - started < timeout_s
+
+        answered()
+    assert watch.polls > 10
+    assert watch.worst < HEALTH_LIMIT_S, f"/health took up to {watch.worst:.2f} s"
