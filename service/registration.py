@@ -24,6 +24,7 @@ from scipy.spatial.transform import Rotation
 from starlette.requests import Request
 
 from model.geometry import (
+    INLIER_SPACINGS,
     REFINE_SPACINGS,
     Normalisation,
     Verification,
@@ -36,7 +37,6 @@ from model.geometry import (
     refine,
     resample_indices,
     rotation_angle_deg,
-    score_alignment,
     subset,
     to_matrix,
     verify_alignment,
@@ -47,13 +47,12 @@ from service.settings import Settings
 from service.state import ServiceState
 from service.validation import InvalidInput, check_cloud
 
-# small_gicp holds the interpreter lock: a subset of each cloud and a time limit keep one refinement
-# from stalling the event loop or a worker thread for long.
-REFINE_MAX_POINTS = 20_000
+# Refinement and the check run on at most this many points per cloud (a seeded subset): small_gicp
+# holds the interpreter lock, so their cost and stalls stay bounded on large scans.
+CHECK_MAX_POINTS = 20_000
+REFINE_MAX_SECONDS = 10.0
 # The refinement's first, coarse pass, in normalised units (clouds of radius NETWORK_RADIUS).
 COARSE_DISTANCE_NORMALISED = 0.05
-REFINE_MAX_SECONDS = 10.0
-CHECK_MAX_POINTS = 20_000  # the answer check's cost stays bounded on large scans
 FEATURE_MAX_POINTS = 8_000
 # The global path's starts: the 24 rotations of a cube, every rotation within the network's range
 # of one of them; the network's answers from the best few (by fitness) are refined and checked.
@@ -139,7 +138,7 @@ class _Prepared:
     normalisation: Normalisation
     init: np.ndarray  # 4x4
     points: CloudReports
-    source_check: np.ndarray  # at most CHECK_MAX_POINTS of `source`: what the answer check scores
+    source_check: np.ndarray  # at most CHECK_MAX_POINTS of `source`: what refinement and the check use
     target_check: np.ndarray
     spacing: float  # the check clouds' point spacing (model.geometry.point_spacing)
     seconds: float
@@ -207,13 +206,12 @@ def _checked(prepared: _Prepared, rotation: np.ndarray, translation: np.ndarray,
         iterations = 0
         for distance in distances:
             rotation, translation, steps = refine(
-                prepared.source,
-                prepared.target,
+                prepared.source_check,
+                prepared.target_check,
                 rotation,
                 translation,
                 distance,
                 max_iterations=refine_options.max_iterations,
-                max_points=REFINE_MAX_POINTS,
                 max_seconds=REFINE_MAX_SECONDS,
             )
             iterations += steps
@@ -276,8 +274,9 @@ def _finish_multistart(
     ranked = []
     for start, prediction in zip(STARTS, predictions, strict=True):
         rotation, translation = _user_transform(prepared, prediction, start)
-        fitness = score_alignment(prepared.source_check, prepared.target_check, rotation, translation, prepared.spacing)
-        ranked.append((fitness.fitness, rotation, translation))
+        moved = apply_transform(prepared.source_check, rotation, translation)
+        fitness, _ = fitness_and_rmse(moved, prepared.target_check, INLIER_SPACINGS * prepared.spacing)
+        ranked.append((fitness, rotation, translation))
     ranked.sort(key=lambda entry: -entry[0])
     refine_options = options.refine or RefineOptions()  # the starts are coarse: every candidate is refined
     best = ranked[:STARTS_REFINED]
