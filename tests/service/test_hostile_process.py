@@ -140,7 +140,7 @@ def test_damaged_files_never_get_a_5xx_and_health_answers_throughout(tmp_path, t
     service = service_process(tmp_path, tiny_model, max_body_bytes=str(BODY_LIMIT), request_timeout_s=str(timeout_s))
     with service as (_, url, _), HealthWatch(url) as watch, httpx.Client(base_url=url, timeout=60) as client:
 
-        @settings(max_examples=80, deadline=None, derandomize=True, suppress_health_check=list(HealthCheck))
+        @settings(max_examples=200, deadline=None, derandomize=True, suppress_health_check=list(HealthCheck))
         @given(damaged())
         def answered(case):
             kind, data = case
