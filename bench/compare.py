@@ -2,6 +2,8 @@
 
     python -m bench.compare peers                      # ModelNet10 and real-scan pairs -> docs/benchmarks/compare.json
     python -m bench.compare peers --modelnet same:jitter unseen:clean:so3 --scans lidar_scans/NAME
+    python -m bench.compare peers --modelnet --scans --no-truth-pairs --scenes indoor outdoor \
+        --request 'indoor={"model": "indoor", "method": "ifnet"}'           # the paper's scene protocols
     python -m bench.compare peers --request auto='{"method": "auto", "refine": true}'   # one more service row
     python -m bench.compare models /tmp/earlier.onnx service/models/ifnet.onnx        # two ONNX files' calls
 
@@ -79,6 +81,19 @@ class Methods:
         return row
 
 
+def paper_errors(rows: list[dict]) -> dict:
+    """The paper's table II columns: MAE and RMSE of the Euler angles (deg) and of the translation."""
+    if not rows:
+        return {}
+    euler, shift = (np.array([row[key] for row in rows]) for key in ("euler_abs_deg", "translation_abs"))
+    return {
+        "mae_r_deg": float(euler.mean()),
+        "rmse_r_deg": float(np.sqrt((euler**2).mean())),
+        "mae_t": float(shift.mean()),
+        "rmse_t": float(np.sqrt((shift**2).mean())),
+    }
+
+
 def summary(pairs: list[dict], names: list[str]) -> dict:
     result = {}
     for name in names:
@@ -101,6 +116,7 @@ def summary(pairs: list[dict], names: list[str]) -> dict:
             if any("verified" in r for r, _ in rows)
             else None,
             "wrong_verified": sum(row.get("verified") is True and not row["right"] for row, _ in rows),
+            **paper_errors(done),
             "median_ms": statistics.median(row["ms"] for row, _ in rows),
             "ratio_to": ratios,
         }
@@ -146,6 +162,8 @@ def peers(args) -> int:
         sets[f"ModelNet {spec}"] = harness.modelnet_pairs(
             args.modelnet_pairs, split, noise, so3=rest == ["so3"], seed=args.seed
         )
+    for domain in args.scenes:
+        sets[f"{domain} scenes"] = harness.scene_pairs(domain, args.scene_pairs, seed=args.seed)
     if args.scans:
         sets["real scans"] = [harness.scan_pair(spec, args.seed, max_angle_deg=args.scan_angle) for spec in args.scans]
     if args.truth_pairs:
@@ -209,6 +227,14 @@ def main(argv: list[str] | None = None) -> int:
         "--modelnet", nargs="*", default=["same:clean"], help="split:noise[:so3] sets of the paper's protocol"
     )
     p.add_argument("--modelnet-pairs", type=int, default=25)
+    p.add_argument(
+        "--scenes",
+        nargs="*",
+        default=[],
+        choices=["indoor", "outdoor"],
+        help="the paper's scene protocol on the scans of the scenes held out of training",
+    )
+    p.add_argument("--scene-pairs", type=int, default=1, help="pairs per held-out scan")
     p.add_argument("--scans", nargs="*", default=list(DEFAULT_SCANS), help="archive/name of scans in the shared data")
     p.add_argument("--scan-angle", type=float, default=30.0, help="largest rotation of a scan pair, degrees")
     p.add_argument("--truth-pairs", action=argparse.BooleanOptionalAction, default=True, help="the real indoor pairs")

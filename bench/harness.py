@@ -26,9 +26,9 @@ from model.geometry import (
     Normalisation,
     from_matrix,
     nearest_rotation,
+    registration_errors,
     remove_duplicates,
     resample_indices,
-    rotation_angle_deg,
     to_matrix,
 )
 
@@ -245,6 +245,24 @@ def scan_pair(spec: str, seed: int = 0, keep: float = 0.7, max_angle_deg: float 
     return Pair(spec, source, view @ rotation.T + translation, rotation, translation, scan_voxel(archive, name))
 
 
+def scene_pairs(domain: str, per_scan: int = 1, seed: int = 0) -> list[Pair]:
+    """The paper's indoor or outdoor protocol (model.training.scenes) on every scan of the scenes held
+    out of training, `per_scan` pairs each, pair k of scan i seeded by (seed, i, k)."""
+    from model.training.scenes import PROTOCOLS, load_scans, make_scan_pair
+
+    voxel = VOXEL_OUTDOOR if domain == "outdoor" else VOXEL_OBJECTS_INDOOR
+    pairs = []
+    for i, (name, scan) in enumerate(load_scans(domain, "test", DATA).items()):
+        for k in range(per_scan):
+            pair = make_scan_pair(scan, PROTOCOLS[domain], np.random.default_rng((seed, i, k)))
+            pairs.append(
+                Pair(
+                    f"{domain}/{name}/{k}", pair["source"], pair["target"], pair["rotation"], pair["translation"], voxel
+                )
+            )
+    return pairs
+
+
 def truth_pairs() -> list[Pair]:
     """The real pairs with ground truth in the shared data (indoor_pairs.npz: NAME/source, NAME/target, NAME/T)."""
     pairs = []
@@ -322,10 +340,19 @@ def kiss_matcher_gicp(source: np.ndarray, target: np.ndarray, voxel: float):
 
 
 def errors(pair: Pair, rotation: np.ndarray, translation: np.ndarray) -> dict:
-    rotation_deg = float(rotation_angle_deg(np.asarray(rotation), pair.rotation))
-    translation_error = float(np.linalg.norm(np.asarray(translation) - pair.translation))
+    """Isotropic errors and the verdict, plus the paper's per-axis errors (Euler angles in degrees,
+    translation per axis) whose means and RMS make its tables' MAE and RMSE."""
+    rotation, translation = np.asarray(rotation, np.float64), np.asarray(translation, np.float64)
+    paper = registration_errors(rotation[None], translation[None], pair.rotation[None], pair.translation[None])
+    rotation_deg, translation_error = float(paper["rotation_deg"][0]), float(paper["translation"][0])
     right = rotation_deg <= RIGHT_ROTATION_DEG and translation_error <= RIGHT_TRANSLATION_SHARE * pair.extent
-    return {"rotation_deg": rotation_deg, "translation": translation_error, "right": bool(right)}
+    return {
+        "rotation_deg": rotation_deg,
+        "translation": translation_error,
+        "right": bool(right),
+        "euler_abs_deg": paper["euler_abs"][0].tolist(),
+        "translation_abs": paper["trans_abs"][0].tolist(),
+    }
 
 
 def run_header() -> dict:

@@ -187,6 +187,16 @@ def resample_indices(
     return np.concatenate([np.arange(num_points), extra])
 
 
+def voxel_downsample(points: np.ndarray, size: float) -> np.ndarray:
+    """One point per occupied cube of side `size`: the centroid of the points inside it."""
+    keys = np.floor((points - points.min(axis=0)) / size).astype(np.int64)
+    _, cell, counts = np.unique(keys, axis=0, return_inverse=True, return_counts=True)
+    cell = cell.ravel()
+    sums = np.zeros((len(counts), 3))
+    np.add.at(sums, cell, points)
+    return sums / counts[:, None]
+
+
 def crop_nearest(points: np.ndarray, anchor: np.ndarray, count: int) -> np.ndarray:
     """The `count` points nearest to anchor (the protocol's partial view), nearest first."""
     order = np.argsort(np.sum((points - anchor) ** 2, axis=1), kind="stable")

@@ -1,6 +1,8 @@
 """Train IFNet with the paper's unsupervised losses.
 
     python -m model.training.train --preset fast --epochs 2 --out runs/fast
+    python -m model.training.train --domain indoor --init-weights model/weights/ifnet-fast.pt \
+        --override edgeconv_k=16 --epochs 40 --out runs/indoor          # scene pairs from real scans
 
 Writes <out>/checkpoint.pt every --checkpoint-every steps (and at the end), a CSV log of the
 losses, and losses.png. Rerunning the same command resumes from the checkpoint.
@@ -33,6 +35,7 @@ from model.geometry import rotation_angle_deg
 from model.ifnet import PRESETS, IFNet, IFNetConfig, preset
 from model.training.data import DEFAULT_DATA_DIR, NOISE_KINDS, Protocol, RegistrationPairs, load_split
 from model.training.losses import ifnet_losses, teacher_consistency_loss
+from model.training.scenes import PROTOCOLS, ScanPairs, load_scans
 
 PROG = "python -m model.training.train"
 
@@ -57,6 +60,13 @@ VALIDATION_COLUMNS = {"val_rotation_deg": "clean", "val_jitter_rotation_deg": "j
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     parser = argparse.ArgumentParser(
         prog=PROG, description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    parser.add_argument(
+        "--domain",
+        default="object",
+        choices=["object", *PROTOCOLS],
+        help="training pairs: ModelNet10 objects (default), or real indoor or outdoor scans of the scenes "
+        "not held out for evaluation (model/training/scenes.py)",
     )
     parser.add_argument("--preset", default="fast", choices=sorted(PRESETS), help="model size (default: fast)")
     parser.add_argument(
@@ -160,6 +170,51 @@ def training_pairs(shapes: np.ndarray, args: argparse.Namespace) -> Registration
     """The training pairs: --noise kinds mixed pair by pair, jitter of --jitter-sigma."""
     protocols = [Protocol(noise=kind, jitter_sigma=args.jitter_sigma) for kind in args.noise]
     return RegistrationPairs(shapes, protocols, seed=args.seed)
+
+
+def object_pairs(
+    args: argparse.Namespace, config: IFNetConfig
+) -> tuple[RegistrationPairs, dict[str, RegistrationPairs]]:
+    """ModelNet10 training pairs and the held-out validation pairs of each VALIDATION_COLUMNS noise."""
+    shapes = load_split("train", args.data_dir)
+    if args.val_shapes >= len(shapes):
+        raise UserError(f"--val-shapes {args.val_shapes} leaves nothing to train on: the split has {len(shapes)}")
+    val_shapes, train_shapes = shapes[-args.val_shapes :], shapes[: -args.val_shapes]
+    if args.max_shapes:
+        train_shapes = train_shapes[: args.max_shapes]
+    try:
+        train_pairs = training_pairs(train_shapes, args)
+    except ValueError as error:  # kinds of noise that cannot be mixed
+        raise UserError(f"--noise {' '.join(args.noise)}: {error}") from None
+    validation = {
+        column: RegistrationPairs(val_shapes, Protocol(noise=noise), seed=args.seed + 1)
+        for column, noise in VALIDATION_COLUMNS.items()
+    }
+    return train_pairs, validation
+
+
+# Validation pairs per held-out scan: the outdoor domain holds out only 12 scans.
+VALIDATION_PAIRS_PER_SCAN = {"indoor": 1, "outdoor": 4}
+
+
+def scene_pairs(args: argparse.Namespace, config: IFNetConfig) -> tuple[ScanPairs, dict[str, ScanPairs]]:
+    """Pairs from the domain's training scenes; validation on its held-out scenes (two captures of
+    one scene share no point, so these pairs are all of the "jitter" kind: one column)."""
+    if args.noise != ["clean"] or args.teacher:
+        raise UserError(f"--domain {args.domain}: --noise and --teacher apply to object pairs only")
+    try:
+        train_scans, test_scans = (
+            list(load_scans(args.domain, part, args.data_dir).values()) for part in ("train", "test")
+        )
+    except FileNotFoundError as error:
+        raise UserError(str(error)) from None
+    if args.max_shapes:
+        train_scans = train_scans[: args.max_shapes]
+    protocol = PROTOCOLS[args.domain]
+    validation = test_scans * VALIDATION_PAIRS_PER_SCAN[args.domain]
+    return ScanPairs(train_scans, protocol, config.num_points, seed=args.seed), {
+        "val_rotation_deg": ScanPairs(validation, protocol, config.num_points, seed=args.seed + 1)
+    }
 
 
 def load_teacher(path: Path, device: str) -> IFNet:
@@ -294,22 +349,9 @@ def train(args: argparse.Namespace) -> Path:
     if resumed is not None and IFNetConfig.from_dict(resumed["config"]) != config:
         raise UserError(f"{checkpoint_path} holds a different preset or overrides; use another --out")
 
-    shapes = load_split("train", args.data_dir)
-    if args.val_shapes >= len(shapes):
-        raise UserError(f"--val-shapes {args.val_shapes} leaves nothing to train on: the split has {len(shapes)}")
-    val_shapes, train_shapes = shapes[-args.val_shapes :], shapes[: -args.val_shapes]
-    if args.max_shapes:
-        train_shapes = train_shapes[: args.max_shapes]
-    if args.batch_size > len(train_shapes):
-        raise UserError(f"--batch-size {args.batch_size} is more than the {len(train_shapes)} training shapes")
-    try:
-        train_pairs = training_pairs(train_shapes, args)
-    except ValueError as error:  # kinds of noise that cannot be mixed
-        raise UserError(f"--noise {' '.join(args.noise)}: {error}") from None
-    validation = {
-        column: RegistrationPairs(val_shapes, Protocol(noise=noise), seed=args.seed + 1)
-        for column, noise in VALIDATION_COLUMNS.items()
-    }
+    train_pairs, validation = (object_pairs if args.domain == "object" else scene_pairs)(args, config)
+    if args.batch_size > len(train_pairs):
+        raise UserError(f"--batch-size {args.batch_size} is more than the {len(train_pairs)} training shapes")
 
     model = IFNet(config).to(args.device)
     teacher = load_teacher(args.teacher, args.device) if args.teacher else None
@@ -389,7 +431,7 @@ def train(args: argparse.Namespace) -> Path:
                 if step % args.checkpoint_every == 0 or step == total_steps:
                     for column, pairs in validation.items():
                         row[column] = f"{validate(model, pairs, args.device, args.batch_size):.4f}"
-                    errors = ", ".join(f"{row[column]} deg {noise}" for column, noise in VALIDATION_COLUMNS.items())
+                    errors = ", ".join(f"{row[column]} deg ({column})" for column in validation)
                     progress.write(f"step {step}: validation rotation error {errors}")
                     save_checkpoint(checkpoint_path, model, optimizer, step, args)
                 log.writerow(row)

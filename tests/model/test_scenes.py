@@ -1,0 +1,89 @@
+"""Scene pairs from real scans: the split by scene, the paper's indoor and outdoor protocols."""
+
+import numpy as np
+import pytest
+
+torch = pytest.importorskip("torch", reason="the training tests need torch")
+
+from scipy.spatial import cKDTree  # noqa: E402
+
+from model.geometry import NETWORK_RADIUS, apply_transform, voxel_downsample  # noqa: E402
+from model.training.data import DEFAULT_DATA_DIR  # noqa: E402
+from model.training.scenes import (  # noqa: E402
+    HELD_OUT_SCENES,
+    PROTOCOLS,
+    SCAN_FILES,
+    ScanPairs,
+    load_scans,
+    make_scan_pair,
+    network_view,
+    scene_of,
+)
+from model.training.train import main as train_main  # noqa: E402
+
+
+def room(rng: np.random.Generator, points: int = 6000) -> np.ndarray:
+    """A synthetic scan in metres: a floor and two walls of a 4 x 3 x 2.5 m room, with a box."""
+    floor = rng.uniform([0, 0, 0], [4, 3, 0], (points // 4, 3))
+    wall_x = rng.uniform([0, 0, 0], [0, 3, 2.5], (points // 4, 3))
+    wall_y = rng.uniform([0, 3, 0], [4, 3, 2.5], (points // 4, 3))
+    box = rng.uniform([1, 1, 0], [1.6, 1.5, 0.8], (points - 3 * (points // 4), 3))
+    return np.concatenate([floor, wall_x, wall_y, box])
+
+
+@pytest.mark.parametrize("domain", sorted(PROTOCOLS))
+def test_scan_pairs_follow_the_domains_protocol_without_shared_points(domain):
+    scan = room(np.random.default_rng(0), 20000) * (10.0 if domain == "outdoor" else 1.0)
+    pair = make_scan_pair(scan, PROTOCOLS[domain], np.random.default_rng(1))
+    expected = 1536 if domain == "indoor" else 2048
+    assert pair["source"].shape == (expected, 3) and pair["target"].shape == (expected, 3)
+    # No target point is an exact image of a source point: two captures, not one point set.
+    moved = apply_transform(pair["source"], pair["rotation"], pair["translation"])
+    distances, _ = cKDTree(pair["target"]).query(moved)
+    assert distances.min() > 1e-9
+    # ... yet the truth brings the source onto the target's surface (within the sampling's spacing).
+    spacing = np.median(cKDTree(pair["target"]).query(pair["target"], k=2)[0][:, 1])
+    assert np.median(distances) < 2 * spacing
+
+
+def test_voxel_downsampling_keeps_one_centroid_per_occupied_cell():
+    points = np.array([[0.0, 0, 0], [0.2, 0, 0], [1.1, 0, 0], [1.2, 0.1, 0], [5, 5, 5]])
+    cells = voxel_downsample(points, 1.0)
+    assert len(cells) == 3
+    np.testing.assert_allclose(sorted(cells[:, 0]), [0.1, 1.15, 5.0])
+
+
+def test_network_view_samples_and_normalises_like_the_service():
+    rng = np.random.default_rng(2)
+    pair = make_scan_pair(room(rng), PROTOCOLS["indoor"], rng)
+    source, target, normalisation = network_view(pair["source"], pair["target"], 768)
+    assert source.shape == target.shape == (768, 3) and source.dtype == np.float32
+    radius = max(np.linalg.norm(source, axis=1).max(), np.linalg.norm(target, axis=1).max())
+    assert radius == pytest.approx(NETWORK_RADIUS, rel=1e-5)
+    np.testing.assert_allclose(source.mean(axis=0), 0, atol=1e-5)
+
+
+def test_scan_pairs_are_seeded_by_index_and_epoch():
+    scans = [room(np.random.default_rng(i)) for i in range(3)]
+    pairs = ScanPairs(scans, PROTOCOLS["indoor"], 64, seed=5)
+    first = pairs[1]["source"]
+    assert torch.equal(first, pairs[1]["source"])
+    pairs.epoch = 1
+    assert not torch.equal(first, pairs[1]["source"])
+
+
+def test_scene_pairs_refuse_object_only_options(tmp_path, capsys):
+    with pytest.raises(SystemExit) as exit_:
+        train_main(["--domain", "indoor", "--noise", "jitter", "--out", str(tmp_path / "run")])
+    assert exit_.value.code == 2
+    assert "--domain indoor: --noise and --teacher apply to object pairs only" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("domain", sorted(SCAN_FILES))
+def test_no_scene_is_both_trained_on_and_held_out(domain):
+    if not (DEFAULT_DATA_DIR / SCAN_FILES[domain]).is_file():
+        pytest.skip(f"{SCAN_FILES[domain]} not found in {DEFAULT_DATA_DIR} (shared data is not checked out here)")
+    train, test = (load_scans(domain, part) for part in ("train", "test"))
+    train_scenes, test_scenes = ({scene_of(name) for name in scans} for scans in (train, test))
+    assert train_scenes and not train_scenes & test_scenes
+    assert test_scenes == set(HELD_OUT_SCENES[domain])  # every held-out scene exists in the data
