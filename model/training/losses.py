@@ -76,21 +76,30 @@ def pseudo_consistency_loss(block: BlockOutput, keypoint_idx: Tensor) -> Tensor:
 
 
 def teacher_consistency_loss(
-    output: IFNetOutput, rotation: Tensor, translation: Tensor, blocks: slice = slice(None)
+    output: IFNetOutput,
+    rotation: Tensor,
+    translation: Tensor,
+    blocks: slice = slice(None),
+    taught: Tensor | None = None,
 ) -> Tensor:
     """Mean distance between the source as each block leaves it and as a teacher's (R, t) moves it.
 
     The teacher's (R, t) [B, 3, 3], [B, 3] is a trained network's estimate on the pair before its
     noise, not the true pose: a registration signal on noisy pairs, whose clouds share no exact
     points for the paper's losses to lock onto. Averaged over the chosen blocks (all by default;
-    `slice(n_iters - 1, None, n_iters)` takes each time step's finished estimate), points and batch.
+    `slice(n_iters - 1, None, n_iters)` takes each time step's finished estimate), points and the
+    pairs the teacher answered (`taught` [B], 1 or 0; default: all).
     """
-    taught = transform_points(output.blocks[0].source, rotation, translation)  # [B, N, 3]
-    distances = [
-        (transform_points(block.source, block.rotation, block.translation) - taught).norm(dim=-1).mean()
-        for block in output.blocks[blocks]
-    ]
-    return torch.stack(distances).mean()
+    goal = transform_points(output.blocks[0].source, rotation, translation)  # [B, N, 3]
+    distances = torch.stack(
+        [
+            (transform_points(block.source, block.rotation, block.translation) - goal).norm(dim=-1).mean(dim=-1)
+            for block in output.blocks[blocks]
+        ]
+    )  # [blocks, B]
+    if taught is None:
+        return distances.mean()
+    return (distances * taught).sum() / (distances.shape[0] * taught.sum().clamp(min=1.0))
 
 
 def ifnet_losses(output: IFNetOutput, target: Tensor, config: IFNetConfig, global_on_distances: bool = False) -> Losses:

@@ -7,7 +7,9 @@ two clouds are drawn from disjoint halves of the scan, so that they share no exa
 captures of one scene do. Scans are split by scene: a held-out scene never reaches training.
 
 The network sees each pair as the service hands it over: both clouds sampled to its point count
-by farthest-point sampling and normalised (`model.geometry.Normalisation`).
+by farthest-point sampling and normalised (`model.geometry.Normalisation`). Each pair also carries
+the paper's version of itself (both clouds from one sample, so they share points), in the same
+frame, for a teacher: the same (R, t) aligns both.
 """
 
 from dataclasses import dataclass
@@ -91,15 +93,37 @@ def make_scan_pair(scan: np.ndarray, protocol: ScanProtocol, rng: np.random.Gene
     source, target = (
         half[rng.choice(len(half), size=min(protocol.sample_points, len(half)), replace=False)] for half in halves
     )
+    # One sample for both clouds, the paper's way: a teacher's pair (teacher_view).
+    shared = points[rng.choice(len(points), size=min(protocol.sample_points, len(points)), replace=False)]
     rotation, _ = random_rotation(rng, protocol.max_angle_deg)
     translation = rng.uniform(-protocol.max_translation, protocol.max_translation, size=3)
     target = apply_transform(target, rotation, translation)
+    anchor = None
     if protocol.crop_points:
         # One far direction, shared by both clouds in their own frames, as the ModelNet protocol does.
         anchor = scan.mean(axis=0) + np.ptp(scan, axis=0).max() * 500.0 * rng.normal(size=3)
-        source = crop_nearest(source, anchor, protocol.crop_points)
-        target = crop_nearest(target, anchor, protocol.crop_points)
-    return {"source": source, "target": target, "rotation": rotation, "translation": translation}
+        source, target = (crop_nearest(cloud, anchor, protocol.crop_points) for cloud in (source, target))
+    return {
+        "source": source,
+        "target": target,
+        "rotation": rotation,
+        "translation": translation,
+        "shared": shared,
+        "anchor": anchor,
+    }
+
+
+def teacher_view(pair: dict, points: int, protocol: ScanProtocol) -> tuple[np.ndarray, np.ndarray]:
+    """The pair as the paper builds it, at the network's point count: one sample of the scan, moved,
+    and both copies cropped alike, so that the clouds share their points where they overlap."""
+    keep = round(points * protocol.sample_points / protocol.crop_points) if protocol.crop_points else points
+    shared = pair["shared"]
+    if len(shared) > keep:
+        shared = shared[farthest_point_sample(shared, keep)]
+    source, target = shared, apply_transform(shared, pair["rotation"], pair["translation"])
+    if pair["anchor"] is not None:
+        source, target = (crop_nearest(cloud, pair["anchor"], points) for cloud in (source, target))
+    return source, target
 
 
 def network_view(source: np.ndarray, target: np.ndarray, points: int) -> tuple[np.ndarray, np.ndarray, Normalisation]:
@@ -131,9 +155,13 @@ class ScanPairs(Dataset):
     def __getitem__(self, index: int) -> dict[str, torch.Tensor]:
         rng = np.random.default_rng((self.seed, self.epoch, index))
         pair = make_scan_pair(self.scans[index], self.protocol, rng)
-        source, target, _ = network_view(pair["source"], pair["target"], self.network_points)
+        source, target, normalisation = network_view(pair["source"], pair["target"], self.network_points)
+        # The teacher's pair in the student's frame, so that one (R, t) aligns both pairs.
+        shared_source, shared_target = teacher_view(pair, self.network_points, self.protocol)
         return {
             "source": torch.from_numpy(source),
             "target": torch.from_numpy(target),
             "rotation": torch.from_numpy(pair["rotation"].astype(np.float32)),
+            "noise_free_source": torch.from_numpy(normalisation.source(shared_source).astype(np.float32)),
+            "noise_free_target": torch.from_numpy(normalisation.target(shared_target).astype(np.float32)),
         }

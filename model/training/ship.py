@@ -20,10 +20,26 @@ import torch
 from model.artifacts import DEFAULT_WEIGHTS, file_sha256
 from model.checkpoint import weights_preset
 from model.cli import UserError, load_torch_file, reports_user_errors
+from model.training.scenes import HELD_OUT_SCENES, SCAN_FILES
 
 PROG = "python -m model.training.ship"
 
 TRAINING_DATA = "ModelNet10 train split (../shared/data/modelnet10_train.npz), last 64 shapes held out for validation"
+
+
+def training_data(args: dict) -> str:
+    """What a checkpoint was trained on, from its recorded command-line arguments."""
+    domain = args.get("domain", "object")
+    if domain == "object":
+        data = TRAINING_DATA
+    else:
+        data = (
+            f"real {domain} scans (../shared/data/{SCAN_FILES[domain]}) of every scene but the held-out "
+            f"{', '.join(HELD_OUT_SCENES[domain])}; the paper's {domain} protocol (model/training/scenes.py)"
+        )
+    if args.get("init_weights"):
+        data += f"; fine-tuned from {args['init_weights']}"
+    return data
 
 
 def training_objective(args: dict) -> str:
@@ -40,6 +56,8 @@ def training_objective(args: dict) -> str:
 
 def pair_noise(args: dict) -> str:
     """The noise of the pairs a checkpoint was trained on (runs before `--noise` existed: clean)."""
+    if args.get("domain", "object") != "object":
+        return "two captures: each cloud drawn from its own half of the scan, no shared point"
     noise = args.get("noise", ["clean"])
     if "jitter" in noise:
         return ", ".join(noise) + f" mixed pair by pair, jitter sigma {args['jitter_sigma']:g}"
@@ -74,7 +92,7 @@ def ship(state: dict, checkpoint: Path, weights: Path) -> dict:
             if not k.endswith(("running_mean", "running_var", "num_batches_tracked"))
         ),
         "training": {
-            "data": TRAINING_DATA,
+            "data": training_data(state["args"]),
             "objective": training_objective(state["args"]),
             "pair_noise": pair_noise(state["args"]),
             "steps": state["step"],

@@ -18,6 +18,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from scipy.spatial import cKDTree
 from torch.utils.data import DataLoader, Subset
 from tqdm import tqdm
 
@@ -31,7 +32,7 @@ from model.cli import (
     positive_int,
     reports_user_errors,
 )
-from model.geometry import rotation_angle_deg
+from model.geometry import apply_transform, point_spacing, refine, rotation_angle_deg
 from model.ifnet import PRESETS, IFNet, IFNetConfig, preset
 from model.training.data import DEFAULT_DATA_DIR, NOISE_KINDS, Protocol, RegistrationPairs, load_split
 from model.training.losses import ifnet_losses, teacher_consistency_loss
@@ -200,8 +201,8 @@ VALIDATION_PAIRS_PER_SCAN = {"indoor": 1, "outdoor": 4}
 def scene_pairs(args: argparse.Namespace, config: IFNetConfig) -> tuple[ScanPairs, dict[str, ScanPairs]]:
     """Pairs from the domain's training scenes; validation on its held-out scenes (two captures of
     one scene share no point, so these pairs are all of the "jitter" kind: one column)."""
-    if args.noise != ["clean"] or args.teacher:
-        raise UserError(f"--domain {args.domain}: --noise and --teacher apply to object pairs only")
+    if args.noise != ["clean"]:
+        raise UserError(f"--domain {args.domain}: --noise applies to object pairs only (scene pairs are two captures)")
     try:
         train_scans, test_scans = (
             list(load_scans(args.domain, part, args.data_dir).values()) for part in ("train", "test")
@@ -242,10 +243,31 @@ def check_device(device: str) -> None:
 
 
 @torch.no_grad()
-def taught_transform(teacher: IFNet, batch: dict[str, torch.Tensor], device: str) -> tuple[torch.Tensor, torch.Tensor]:
-    """The teacher's (R, t) on the pair before noise: its source points map one to one onto the student's."""
-    out = teacher(batch["noise_free_source"].to(device), batch["noise_free_target"].to(device))
-    return out.rotation, out.translation
+def taught_transform(
+    teacher: IFNet, batch: dict[str, torch.Tensor], device: str, polish: bool
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The teacher's (R, t) on the pair before noise (or its shared-point version), and which pairs
+    it answered [B]. `polish` (scene pairs): its estimate refined by GICP, and kept only where the
+    clouds' shared points then coincide; a few degrees off is a poor teacher, a polished one exact."""
+    source, target = batch["noise_free_source"], batch["noise_free_target"]
+    out = teacher(source.to(device), target.to(device))
+    rotation, translation = out.rotation.cpu().double().numpy(), out.translation.cpu().double().numpy()
+    taught = np.ones(len(rotation))
+    if polish:
+        for i, (src, tgt) in enumerate(zip(source.double().numpy(), target.double().numpy(), strict=True)):
+            rotation[i], translation[i], _ = refine(src, tgt, rotation[i], translation[i])
+            taught[i] = shared_points_coincide(apply_transform(src, rotation[i], translation[i]), tgt)
+    return (torch.from_numpy(array).float().to(device) for array in (rotation, translation, taught))
+
+
+# A polished teacher's pose puts the points both clouds share within a hundredth of a point spacing
+# of each other; a wrong one leaves almost none there.
+COINCIDENT_SPACINGS, MIN_COINCIDENT_SHARE = 0.01, 0.2
+
+
+def shared_points_coincide(moved: np.ndarray, target: np.ndarray) -> bool:
+    distances, _ = cKDTree(target).query(moved)
+    return bool(np.mean(distances < COINCIDENT_SPACINGS * point_spacing(target)) >= MIN_COINCIDENT_SHARE)
 
 
 @torch.no_grad()
@@ -403,9 +425,10 @@ def train(args: argparse.Namespace) -> Path:
                 objective = losses.weighted(args.global_weight)
                 taught = torch.zeros(())
                 if teacher is not None:
-                    taught = teacher_consistency_loss(
-                        output, *taught_transform(teacher, batch, args.device), teacher_blocks
+                    rotation, translation, answered = taught_transform(
+                        teacher, batch, args.device, polish=args.domain != "object"
                     )
+                    taught = teacher_consistency_loss(output, rotation, translation, teacher_blocks, answered)
                     objective = objective + args.teacher_weight * taught
                 optimizer.zero_grad(set_to_none=True)
                 objective.backward()

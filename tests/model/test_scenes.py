@@ -1,5 +1,7 @@
 """Scene pairs from real scans: the split by scene, the paper's indoor and outdoor protocols."""
 
+from types import SimpleNamespace
+
 import numpy as np
 import pytest
 
@@ -7,7 +9,13 @@ torch = pytest.importorskip("torch", reason="the training tests need torch")
 
 from scipy.spatial import cKDTree  # noqa: E402
 
-from model.geometry import NETWORK_RADIUS, apply_transform, voxel_downsample  # noqa: E402
+from model.geometry import (  # noqa: E402
+    NETWORK_RADIUS,
+    apply_transform,
+    random_rotation,
+    rotation_angle_deg,
+    voxel_downsample,
+)
 from model.training.data import DEFAULT_DATA_DIR  # noqa: E402
 from model.training.scenes import (  # noqa: E402
     HELD_OUT_SCENES,
@@ -18,8 +26,10 @@ from model.training.scenes import (  # noqa: E402
     make_scan_pair,
     network_view,
     scene_of,
+    teacher_view,
 )
 from model.training.train import main as train_main  # noqa: E402
+from model.training.train import taught_transform  # noqa: E402
 
 
 def room(rng: np.random.Generator, points: int = 6000) -> np.ndarray:
@@ -44,6 +54,34 @@ def test_scan_pairs_follow_the_domains_protocol_without_shared_points(domain):
     # ... yet the truth brings the source onto the target's surface (within the sampling's spacing).
     spacing = np.median(cKDTree(pair["target"]).query(pair["target"], k=2)[0][:, 1])
     assert np.median(distances) < 2 * spacing
+
+
+def test_the_teachers_pair_shares_its_points_where_the_crops_overlap():
+    rng = np.random.default_rng(3)
+    pair = make_scan_pair(room(rng), PROTOCOLS["indoor"], rng)
+    source, target = teacher_view(pair, 256, PROTOCOLS["indoor"])
+    assert source.shape == target.shape == (256, 3)
+    distances, _ = cKDTree(target).query(apply_transform(source, pair["rotation"], pair["translation"]))
+    assert 0.3 < np.mean(distances < 1e-9) < 1.0  # partial overlap of one point set
+
+
+def test_a_polished_teacher_is_exact_and_a_wrong_one_is_dropped():
+    """taught_transform on scene pairs: the teacher's estimate refined by GICP on the shared-point
+    pair; pairs where the shared points do not then coincide teach nothing."""
+    rng = np.random.default_rng(4)
+    pairs = ScanPairs([room(np.random.default_rng(i)) for i in range(2)], PROTOCOLS["indoor"], 256, seed=1)
+    batch = {key: torch.stack([pairs[i][key] for i in range(2)]) for key in pairs[0]}
+
+    class Teacher(torch.nn.Module):  # 2 deg off on the first pair, upside down on the second
+        def forward(self, source, target):
+            off = [random_rotation(rng, 2.0)[0], np.diag([1.0, -1.0, -1.0])]
+            rotation = torch.stack([torch.from_numpy(o).float() for o in off]) @ batch["rotation"]
+            return SimpleNamespace(rotation=rotation, translation=torch.zeros(2, 3))
+
+    rotation, _, taught = taught_transform(Teacher(), batch, "cpu", polish=True)
+    assert taught.tolist() == [1.0, 0.0]
+    error = rotation_angle_deg(rotation[0].double().numpy(), batch["rotation"][0].double().numpy())
+    assert error < 0.05
 
 
 def test_voxel_downsampling_keeps_one_centroid_per_occupied_cell():
@@ -76,7 +114,7 @@ def test_scene_pairs_refuse_object_only_options(tmp_path, capsys):
     with pytest.raises(SystemExit) as exit_:
         train_main(["--domain", "indoor", "--noise", "jitter", "--out", str(tmp_path / "run")])
     assert exit_.value.code == 2
-    assert "--domain indoor: --noise and --teacher apply to object pairs only" in capsys.readouterr().err
+    assert "--domain indoor: --noise applies to object pairs only" in capsys.readouterr().err
 
 
 @pytest.mark.parametrize("domain", sorted(SCAN_FILES))
