@@ -62,14 +62,14 @@ RUN apt-get update \
  && useradd --system --uid 10001 --gid ifnet --home-dir /nonexistent --no-create-home --shell /usr/sbin/nologin ifnet
 
 COPY --from=build /opt/venv /opt/venv
-# The service package with its committed ONNX model (service/models/ifnet.onnx).
+# The service package with its committed ONNX model (service/models/object.onnx).
 # `model` contributes only its torch-free modules (the network itself needs torch and stays out).
 COPY service /opt/app/service
 COPY model/__init__.py model/geometry.py model/artifacts.py /opt/app/model/
 COPY docker/healthcheck.py /opt/app/healthcheck.py
 # Import what the service uses (which also writes its bytecode) and load the shipped model once
 # with this image's ONNX Runtime: an image that could not serve fails to build.
-RUN test -f /opt/app/service/models/ifnet.onnx \
+RUN test -f /opt/app/service/models/object.onnx \
  && find /opt/app -depth -type d -name __pycache__ -exec rm -rf {} + \
  && /opt/venv/bin/python -m compileall -q /opt/app >/dev/null \
  && cd /opt/app \

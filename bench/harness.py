@@ -35,7 +35,7 @@ from model.geometry import (
 ROOT = Path(__file__).resolve().parents[1]
 DATA = ROOT.parent / "shared" / "data"
 RESULTS = ROOT / "docs" / "benchmarks"
-MODEL = ROOT / "service" / "models" / "ifnet.onnx"
+MODEL = ROOT / "service" / "models" / "object.onnx"
 RIGHT_ROTATION_DEG = 2.0
 RIGHT_TRANSLATION_SHARE = 0.02  # of the cloud's extent (bounding-box diagonal)
 VOXEL_OBJECTS_INDOOR = 0.05  # metres, and unit-sphere objects

@@ -22,7 +22,7 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     )
     parser.add_argument("--host", help="interface to listen on (default 127.0.0.1, env IFNET_HOST)")
     parser.add_argument("--port", type=int, help="TCP port (default 8000, env IFNET_PORT)")
-    parser.add_argument("--model-path", help="ONNX model (default: the shipped service/models/ifnet.onnx)")
+    parser.add_argument("--model-path", help="ONNX model (default: the shipped service/models/object.onnx)")
     parser.add_argument("--threads", type=int, help="ONNX Runtime intra-op threads (default: the usable CPUs)")
     parser.add_argument(
         "--log-level",

@@ -8,7 +8,7 @@ from pydantic_settings import BaseSettings, SettingsConfigDict
 
 from service.cpus import available_cpus
 
-DEFAULT_MODEL_PATH = Path(__file__).resolve().parent / "models" / "ifnet.onnx"
+DEFAULT_MODEL_PATH = Path(__file__).resolve().parent / "models" / "object.onnx"
 
 
 class Settings(BaseSettings):

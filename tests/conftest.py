@@ -18,7 +18,7 @@ import pytest
 REPO = Path(__file__).resolve().parents[1]
 SHARED_DATA = REPO.parent / "shared" / "data"
 REAL_SCANS = SHARED_DATA / "real_scans.npz"
-SHIPPED_MODEL = REPO / "service" / "models" / "ifnet.onnx"
+SHIPPED_MODEL = REPO / "service" / "models" / "object.onnx"
 TINY_MODEL_POINTS = 64
 
 

@@ -183,7 +183,7 @@ def test_settings_come_from_the_environment(monkeypatch):
     assert (settings.max_batch_size, settings.max_batch_delay_ms, settings.threads) == (6, 2.5, 3)
     assert settings.model_calls == 2
     assert settings.api_key.get_secret_value() == "k"
-    assert settings.model_path == REPO / "service" / "models" / "ifnet.onnx"
+    assert settings.model_path == REPO / "service" / "models" / "object.onnx"
     assert Settings(max_batch_size=2).max_batch_size == 2  # explicit values win over the environment
     monkeypatch.setenv("IFNET_API_KEY", "")
     assert Settings().api_key is None  # an empty key (an absent optional secret) means no key

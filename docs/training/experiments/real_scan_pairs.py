@@ -11,7 +11,7 @@ model, ICP with `refine`), once per model:
 
     python -m export --weights model/weights/ifnet-fast-clean.pt --output /tmp/ifnet-clean.onnx
     python docs/training/experiments/real_scan_pairs.py \
-        --models service/models/ifnet.onnx /tmp/ifnet-clean.onnx --motions 5
+        --models service/models/object.onnx /tmp/ifnet-clean.onnx --motions 5
 
 Prints, per model, scan and kind of pair, the median and worst rotation error (degrees) of the
 network alone and after refinement, and how many pairs are more than 5 degrees off; writes every
@@ -80,7 +80,7 @@ async def _inline(function, *args):
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--models", type=Path, nargs="+", default=[Path("service/models/ifnet.onnx")])
+    parser.add_argument("--models", type=Path, nargs="+", default=[Path("service/models/object.onnx")])
     parser.add_argument("--motions", type=int, default=5, help="random motions per scan and kind of pair")
     parser.add_argument("--overlap", type=float, default=0.75)
     parser.add_argument("--max-points", type=int, default=40_000, help="larger scans are subsampled first")
