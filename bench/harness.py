@@ -96,7 +96,7 @@ class Service:
         self.stop()
 
     def model(self) -> dict:
-        metadata = httpx.get(f"{self.url}/v2/models/ifnet", timeout=30, trust_env=False).json()
+        metadata = httpx.get(f"{self.url}/v2/models/object", timeout=30, trust_env=False).json()
         return {"version": metadata["versions"][0], **metadata.get("parameters", {})}
 
 

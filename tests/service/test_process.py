@@ -156,7 +156,7 @@ def test_sigterm_finishes_in_flight_requests_then_exits(tmp_path, tiny_model):
     # uvicorn re-raises the signal it caught once shutdown is complete, so the parent sees SIGTERM.
     assert exit_code in (0, -signal.SIGTERM)
     text = log.read_text()
-    assert "batcher drained" in text and "Finished server process" in text
+    assert "batchers drained" in text and "Finished server process" in text
 
 
 def test_startup_fails_clearly_without_a_model(tmp_path):

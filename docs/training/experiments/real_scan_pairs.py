@@ -38,7 +38,7 @@ from model.geometry import (
 )
 from service.batcher import Prediction
 from service.engine import OnnxEngine
-from service.registration import register_clouds
+from service.registration import Network, register_clouds
 from service.schemas import RefineOptions, RegistrationOptions
 from service.settings import Settings
 
@@ -65,10 +65,11 @@ def rotation_errors(engine: OnnxEngine, pairs) -> tuple[np.ndarray, np.ndarray]:
         rotation, translation = engine.run(source[None], target[None])
         return Prediction(rotation[0], translation[0])
 
-    options = RegistrationOptions(network_points=engine.info.network_points, refine=RefineOptions())
+    options = RegistrationOptions(refine=RefineOptions())
+    networks = [Network(engine.info.name, engine.info.network_points, predict)]
     alone, refined = [], []
     for source, target, true_rotation in pairs:
-        result = asyncio.run(register_clouds(source, target, options, Settings(), predict, run_blocking=_inline))
+        result = asyncio.run(register_clouds(source, target, options, Settings(), networks, run_blocking=_inline))
         alone.append(float(rotation_angle_deg(from_matrix(result.refinement.network_transform)[0], true_rotation)))
         refined.append(float(rotation_angle_deg(result.rotation, true_rotation)))
     return np.array(alone), np.array(refined)
