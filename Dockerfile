@@ -62,19 +62,19 @@ RUN apt-get update \
  && useradd --system --uid 10001 --gid ifnet --home-dir /nonexistent --no-create-home --shell /usr/sbin/nologin ifnet
 
 COPY --from=build /opt/venv /opt/venv
-# The service package with its committed ONNX model (service/models/ifnet.onnx).
+# The service package with its committed model repository (service/models/*.onnx).
 # `model` contributes only its torch-free modules (the network itself needs torch and stays out).
 COPY service /opt/app/service
 COPY model/__init__.py model/geometry.py model/artifacts.py /opt/app/model/
 COPY docker/healthcheck.py /opt/app/healthcheck.py
-# Import what the service uses (which also writes its bytecode) and load the shipped model once
+# Import what the service uses (which also writes its bytecode) and load the shipped models once
 # with this image's ONNX Runtime: an image that could not serve fails to build.
-RUN test -f /opt/app/service/models/ifnet.onnx \
+RUN test -f /opt/app/service/models/object.onnx \
  && find /opt/app -depth -type d -name __pycache__ -exec rm -rf {} + \
  && /opt/venv/bin/python -m compileall -q /opt/app >/dev/null \
  && cd /opt/app \
  && /opt/venv/bin/python -c "import service.app, model.geometry, scipy.spatial.transform, small_gicp, kiss_matcher, lzf; \
-from service.engine import OnnxEngine; from service.settings import DEFAULT_MODEL_PATH; OnnxEngine(DEFAULT_MODEL_PATH, 1)"
+from service.engine import load_models; from service.settings import Settings; load_models(Settings(threads=1))"
 
 # IFNET_THREADS is deliberately unset: the service then sizes ONNX Runtime to the CPUs this
 # container may use (its cgroup CPU quota, e.g. `--cpus 2`, or the CPU affinity mask).

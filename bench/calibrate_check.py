@@ -308,7 +308,7 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--scans", type=int, default=40, help="scan pairs per real-scan set")
     parser.add_argument("--perturbations", type=int, default=4, help="rotated wrong answers per pair")
     parser.add_argument("--sets", nargs="+", default=[*MODELNET_SETS, "indoor_pairs", "indoor_scans", "lidar_scans"])
-    parser.add_argument("--model", type=Path, default=REPO / "service" / "models" / "ifnet.onnx")
+    parser.add_argument("--model", type=Path, default=REPO / "service" / "models" / "object.onnx")
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--out", type=Path, default=REPO / "docs" / "verification")

@@ -5,7 +5,7 @@
     python -m bench.compare peers --modelnet --scans --no-truth-pairs --scenes indoor outdoor \
         --request 'indoor={"model": "indoor", "method": "ifnet"}'           # the paper's scene protocols
     python -m bench.compare peers --request auto='{"method": "auto", "refine": true}'   # one more service row
-    python -m bench.compare models /tmp/earlier.onnx service/models/ifnet.onnx        # two ONNX files' calls
+    python -m bench.compare models /tmp/earlier.onnx service/models/object.onnx        # two ONNX files' calls
 
 Every method meets every pair, in an order rotated from pair to pair; a method's time is read as
 its per-pair ratio to each peer (median over the pairs), since the machine's speed drifts.

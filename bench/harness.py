@@ -35,7 +35,7 @@ from model.geometry import (
 ROOT = Path(__file__).resolve().parents[1]
 DATA = ROOT.parent / "shared" / "data"
 RESULTS = ROOT / "docs" / "benchmarks"
-MODEL = ROOT / "service" / "models" / "ifnet.onnx"
+MODEL = ROOT / "service" / "models" / "object.onnx"
 RIGHT_ROTATION_DEG = 2.0
 RIGHT_TRANSLATION_SHARE = 0.02  # of the cloud's extent (bounding-box diagonal)
 VOXEL_OBJECTS_INDOOR = 0.05  # metres, and unit-sphere objects
@@ -96,7 +96,7 @@ class Service:
         self.stop()
 
     def model(self) -> dict:
-        metadata = httpx.get(f"{self.url}/v2/models/ifnet", timeout=30, trust_env=False).json()
+        metadata = httpx.get(f"{self.url}/v2/models/object", timeout=30, trust_env=False).json()
         return {"version": metadata["versions"][0], **metadata.get("parameters", {})}
 
 

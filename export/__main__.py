@@ -1,6 +1,6 @@
 """Export trained IFNet weights to ONNX, check the file against torch, and only then write it.
 
-python -m export                                   # shipped weights -> service/models/ifnet.onnx
+python -m export                                   # shipped weights -> service/models/object.onnx
 python -m export --weights runs/fast/checkpoint.pt --output /tmp/ifnet.onnx
 python -m export --iterations 6 --output /tmp/ifnet-6.onnx  # 3 time steps x 6 iterations
 python -m export --time-steps 2 --iterations 4 --output /tmp/ifnet-2x4.onnx

@@ -7,7 +7,7 @@ from pathlib import Path
 
 PROJECT_ROOT = Path(__file__).resolve().parents[1]
 DEFAULT_WEIGHTS = PROJECT_ROOT / "model" / "weights" / "ifnet-fast.pt"
-SERVED_MODEL = PROJECT_ROOT / "service" / "models" / "ifnet.onnx"
+SERVED_MODEL = PROJECT_ROOT / "service" / "models" / "object.onnx"
 
 
 def file_sha256(path: Path) -> str:

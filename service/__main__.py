@@ -11,7 +11,7 @@ import sys
 
 from pydantic import ValidationError
 
-from service.engine import ModelLoadError, OnnxEngine
+from service.engine import ModelLoadError, load_models
 from service.settings import Settings
 
 
@@ -22,7 +22,12 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     )
     parser.add_argument("--host", help="interface to listen on (default 127.0.0.1, env IFNET_HOST)")
     parser.add_argument("--port", type=int, help="TCP port (default 8000, env IFNET_PORT)")
-    parser.add_argument("--model-path", help="ONNX model (default: the shipped service/models/ifnet.onnx)")
+    parser.add_argument(
+        "--model-repository",
+        help="folder of the ONNX models, each served under its file name without .onnx "
+        "(default: the shipped service/models, env IFNET_MODEL_REPOSITORY)",
+    )
+    parser.add_argument("--model-path", help="one ONNX model to serve alone instead (env IFNET_MODEL_PATH)")
     parser.add_argument("--threads", type=int, help="ONNX Runtime intra-op threads (default: the usable CPUs)")
     parser.add_argument(
         "--log-level",
@@ -41,9 +46,9 @@ def main(argv: list[str] | None = None) -> int:
         print(f"ifnet-serve: invalid settings:\n{error}", file=sys.stderr)
         return 2
     logging.basicConfig(level=settings.log_level.upper(), format="%(asctime)s %(levelname)s %(name)s: %(message)s")
-    # Load the model before binding the port: a bad model path fails at once with its reason.
+    # Load the models before binding the port: a bad model file fails at once with its reason.
     try:
-        engine = OnnxEngine(settings.model_path, settings.threads, settings.model_calls)
+        engines = load_models(settings)
     except ModelLoadError as error:
         print(f"ifnet-serve: cannot start: {error}", file=sys.stderr)
         return 1
@@ -54,7 +59,7 @@ def main(argv: list[str] | None = None) -> int:
     from service.protocol import service_protocol
 
     uvicorn.run(
-        create_app(settings, engine=engine),
+        create_app(settings, engines=engines),
         host=settings.host,
         port=settings.port,
         log_level=settings.log_level,

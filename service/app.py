@@ -1,4 +1,4 @@
-"""The FastAPI application: factory, lifespan (load, warm up, drain on shutdown) and error answers."""
+"""The FastAPI application: factory, lifespan (load the models, warm up, drain on shutdown) and error answers."""
 
 import asyncio
 import logging
@@ -16,8 +16,8 @@ from starlette.exceptions import HTTPException as StarletteHTTPException
 from starlette.requests import ClientDisconnect
 
 from service import __version__
-from service.batcher import InferenceError, MicroBatcher, QueueFullError, RequestTimeoutError, ShuttingDownError
-from service.engine import Engine, OnnxEngine
+from service.batcher import InferenceError, QueueFullError, RequestTimeoutError, ShuttingDownError
+from service.engine import Engine, load_models
 from service.formats import UnsupportedFormat
 from service.metrics import HttpMetricsMiddleware
 from service.middleware import (
@@ -43,47 +43,37 @@ DESCRIPTION = """
 Rigid registration of two point clouds with IFNet, run by ONNX Runtime.
 
 `POST /register` returns (R, t) with `target ~ source @ R^T + t` in the clouds' own units, plus
-Open3D-style fitness and inlier RMSE. Requests are batched; `/health`, `/ready` and `/metrics`
-serve operations, and `/v2/...` speaks the Open Inference Protocol.
+Open3D-style fitness and inlier RMSE. The option `model` picks one of the served networks
+(`GET /v2/models`). Requests are batched; `/health`, `/ready` and `/metrics` serve operations,
+and `/v2/...` speaks the Open Inference Protocol.
 """
 
 
-async def _become_ready(state: ServiceState, batcher: MicroBatcher) -> None:
-    """Warm the model up at every batch size, then start serving the queue and report ready."""
-    try:
-        if state.settings.warmup:
-            await batcher.warm_up(state.model.network_points)
-    except Exception as error:
-        state.warmup_error = f"warm-up failed: {error}"
-        logger.exception("model warm-up failed; the service stays not ready")
-        return
-    batcher.start()
+async def _become_ready(state: ServiceState) -> None:
+    """Warm each model up at every batch size, one after another (their calls would contend for the
+    CPUs), then start serving the queues and report ready."""
+    for name, model in state.models.items():
+        try:
+            if state.settings.warmup:
+                await model.batcher.warm_up(model.info.network_points)
+        except Exception as error:
+            state.warmup_error = f"warm-up of model {name} failed: {error}"
+            logger.exception("warm-up of model %s failed; the service stays not ready", name)
+            return
+    for model in state.models.values():
+        model.batcher.start()
     state.ready.set()
     state.metrics.ready.set(1)
 
 
-def _lifespan(engine: Engine | None):
+def _lifespan(engines: list[Engine] | None):
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
         state: ServiceState = app.state.service
         settings = state.settings
-        # A missing or corrupt model raises ModelLoadError here, so startup fails with its message.
-        state.engine = engine or await asyncio.to_thread(
-            OnnxEngine, settings.model_path, settings.threads, settings.model_calls
-        )
-        state.batcher = MicroBatcher(
-            state.engine,
-            max_batch_size=settings.max_batch_size,
-            max_queue_size=settings.max_queue_size,
-            max_batch_delay_ms=settings.max_batch_delay_ms,
-            model_calls=settings.model_calls,
-            metrics=state.metrics,
-        )
-        info = state.model
-        state.metrics.model.info(
-            {"name": info.name, "version": info.version, "network_points": str(info.network_points)}
-        )
-        becoming_ready = asyncio.create_task(_become_ready(state, state.batcher))
+        # A missing or corrupt model file raises ModelLoadError here, so startup fails with its message.
+        state.serve(engines or await asyncio.to_thread(load_models, settings))
+        becoming_ready = asyncio.create_task(_become_ready(state))
         try:
             yield
         finally:
@@ -94,8 +84,8 @@ def _lifespan(engine: Engine | None):
             state.metrics.ready.set(0)
             becoming_ready.cancel()
             await asyncio.wait({becoming_ready})
-            await state.batcher.close(settings.shutdown_timeout_s)
-            logger.info("batcher drained; shutting down")
+            await asyncio.gather(*(model.batcher.close(settings.shutdown_timeout_s) for model in state.models.values()))
+            logger.info("batchers drained; shutting down")
 
     return lifespan
 
@@ -210,8 +200,9 @@ def _install_openapi(app: FastAPI) -> None:
     app.openapi = openapi
 
 
-def create_app(settings: Settings | None = None, engine: Engine | None = None) -> FastAPI:
-    """The service as an ASGI app. Without `engine`, the lifespan loads settings.model_path."""
+def create_app(settings: Settings | None = None, engines: list[Engine] | None = None) -> FastAPI:
+    """The service as an ASGI app, serving `engines` (the first is the default model); without them,
+    the lifespan loads the model repository (`engine.load_models`)."""
     settings = settings or Settings()
     state = ServiceState(settings)
     # /docs and /redoc load Swagger UI and ReDoc from the installed package, never from a CDN; no
@@ -220,7 +211,7 @@ def create_app(settings: Settings | None = None, engine: Engine | None = None) -
         title="ifnet-serve",
         version=__version__,
         description=DESCRIPTION,
-        lifespan=_lifespan(engine),
+        lifespan=_lifespan(engines),
         redirect_slashes=False,
     )
     app.state.service = state

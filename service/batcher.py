@@ -3,8 +3,9 @@
 Each submitted pair gets a future. A worker takes up to `max_batch_size` waiting pairs (after
 an optional delay to let more arrive), runs one model call per input shape on a thread of its
 own so that the event loop stays free, and resolves the futures. `model_calls` workers
-(default 1) take batches side by side, each with its own thread. A pair whose caller gave up
-(timeout, client disconnect) has a cancelled future: the worker skips it, or drops its result.
+(default 1) take batches side by side, each with its own thread; the batchers of several models
+share `slots`, so that no more than that many calls run at once in all. A pair whose caller gave
+up (timeout, client disconnect) has a cancelled future: the worker skips it, or drops its result.
 """
 
 import asyncio
@@ -73,6 +74,7 @@ class MicroBatcher:
         max_queue_size: int,
         max_batch_delay_ms: float = 0.0,
         model_calls: int = 1,
+        slots: asyncio.Semaphore | None = None,
         metrics: Metrics | None = None,
     ):
         self.engine = engine
@@ -87,6 +89,7 @@ class MicroBatcher:
         self._idle.set()
         self._closing = False
         self.model_calls = model_calls
+        self._slots = slots or asyncio.Semaphore(model_calls)  # model calls under way, of this batcher's and others'
         self._workers: list[asyncio.Task] = []
         self._batch_seconds = 1.0  # running estimate of one model call, for Retry-After
         # One thread per worker: ORT parallelises inside a call with the engine's threads.
@@ -127,6 +130,11 @@ class MicroBatcher:
         self._executor.shutdown(wait=False, cancel_futures=True)
 
     # ------------------------------------------------------------ clients
+
+    @property
+    def model(self) -> str:
+        """The engine's model name: the label of this batcher's metrics."""
+        return self.engine.info.name
 
     @property
     def queue_depth(self) -> int:
@@ -209,7 +217,8 @@ class MicroBatcher:
                 await self._fill(batch)
                 self._update_depth()
                 try:
-                    await self._run(batch)
+                    async with self._slots:
+                        await self._run(batch)
                 except Exception as error:  # a bug here must not stop the worker for everyone else
                     logger.exception("batch of %d failed", len(batch))
                     self._fail(batch, InferenceError(f"inference failed: {error}"))
@@ -253,12 +262,12 @@ class MicroBatcher:
             seconds = time.perf_counter() - started
             self._batch_seconds = 0.8 * self._batch_seconds + 0.2 * seconds
             if self.metrics is not None:
-                self.metrics.batch_size.observe(len(items))
-                self.metrics.inference.observe(seconds)
+                self.metrics.batch_size.labels(self.model).observe(len(items))
+                self.metrics.inference.labels(self.model).observe(seconds)
             for index, pending in enumerate(items):
                 queued = started - pending.enqueued_at
                 if self.metrics is not None:
-                    self.metrics.queue_wait.observe(queued)
+                    self.metrics.queue_wait.labels(self.model).observe(queued)
                 if not pending.future.done():
                     pending.future.set_result(
                         Prediction(
@@ -276,8 +285,8 @@ class MicroBatcher:
 
     def _update_depth(self) -> None:
         if self.metrics is not None:
-            self.metrics.queue_depth.set(self._waiting)
+            self.metrics.queue_depth.labels(self.model).set(self._waiting)
 
     def _reject(self, reason: str) -> None:
         if self.metrics is not None:
-            self.metrics.rejections.labels(reason).inc()
+            self.metrics.rejections.labels(self.model, reason).inc()

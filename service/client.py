@@ -61,7 +61,7 @@ class RegistrationClient:
         self._http.close()
 
     def register(self, source: np.ndarray, target: np.ndarray, **options: Any) -> dict[str, Any]:
-        """Register two [N, 3] arrays; options as in /register (init, refine, network_points, sampling, seed, ...).
+        """Register two [N, 3] arrays; options as in /register (model, init, refine, network_points, sampling, ...).
 
         The arrays go as one NPZ body: much cheaper to encode and parse than JSON lists.
         """
@@ -138,6 +138,7 @@ def main(argv: list[str] | None = None) -> int:
         dest="network_points",
         help="points per cloud given to the network",
     )
+    parser.add_argument("--model", help="the served model to use, by name (service default: object)")
     parser.add_argument(
         "--method",
         choices=["auto", "ifnet", "global"],
@@ -171,6 +172,7 @@ def main(argv: list[str] | None = None) -> int:
                 init=init,
                 refine=refine,
                 network_points=args.network_points,
+                model=args.model,
                 method=args.method,
                 sampling=args.sampling,
                 seed=args.seed,

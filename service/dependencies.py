@@ -1,5 +1,5 @@
-"""FastAPI dependencies: the shared service state (engine, batcher, settings), admission control
-and the API key check."""
+"""FastAPI dependencies: the shared service state (models, settings), admission control and the
+API key check."""
 
 import secrets
 from collections.abc import AsyncIterator
@@ -15,9 +15,9 @@ def get_service(request: Request) -> ServiceState:
 
 
 def get_loaded_service(service: Annotated[ServiceState, Depends(get_service)]) -> ServiceState:
-    """The service once its model is loaded (requests queue during warm-up and run after it)."""
-    if service.engine is None or service.batcher is None:
-        raise HTTPException(503, "the model is not loaded yet; retry shortly", headers={"Retry-After": "1"})
+    """The service once its models are loaded (requests queue during warm-up and run after it)."""
+    if not service.models:
+        raise HTTPException(503, "the models are not loaded yet; retry shortly", headers={"Retry-After": "1"})
     return service
 
 
@@ -26,12 +26,12 @@ async def admit(service: Annotated[ServiceState, Depends(get_loaded_service)]) -
     `max_in_flight` requests are already being read, parsed, queued or run."""
     limit = service.settings.max_in_flight
     if service.in_flight >= limit:
-        assert service.batcher is not None
+        retry_after_s = max(model.batcher.retry_after_s() for model in service.models.values())
         raise HTTPException(
             429,
             f"the service is busy: {limit} registration requests are already in progress; "
             "retry after the Retry-After header's seconds",
-            headers={"Retry-After": str(service.batcher.retry_after_s())},
+            headers={"Retry-After": str(retry_after_s)},
         )
     service.in_flight += 1
     try:

@@ -1,8 +1,11 @@
-"""The ONNX Runtime session behind the service: loading, model metadata, thread count, warm-up."""
+"""The ONNX Runtime sessions behind the service: the model repository, loading, model metadata,
+thread count, warm-up."""
 
 import json
 import logging
 import threading
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Protocol
@@ -11,6 +14,7 @@ import numpy as np
 
 from model.artifacts import file_sha256
 from service.cpus import available_cpus
+from service.settings import Settings
 
 logger = logging.getLogger(__name__)
 
@@ -18,6 +22,7 @@ REQUIRED_INPUTS = ("source", "target")
 REQUIRED_OUTPUTS = ("rotation", "translation")
 DEFAULT_NETWORK_POINTS = 768
 ORT_TO_V2_DATATYPE = {"tensor(float)": "FP32", "tensor(double)": "FP64", "tensor(int64)": "INT64"}
+DEFAULT_MODEL = "object"  # requests that name no model use it, and `auto` asks it first
 
 
 class ModelLoadError(RuntimeError):
@@ -33,7 +38,7 @@ class TensorSpec:
 
 @dataclass(frozen=True)
 class ModelInfo:
-    name: str
+    name: str  # the file's name without `.onnx`: how requests and routes name the model
     network_points: int  # points per cloud the network was exported for
     min_network_points: int  # fewest points per cloud the graph runs on (its widest kNN)
     file_sha256: str
@@ -89,6 +94,26 @@ def _metadata_count(metadata: dict[str, str], key: str, path: Path, missing: int
     return count
 
 
+class RunningCalls:
+    """The model calls under way across every engine that shares this count (all of the service's)."""
+
+    def __init__(self):
+        self._count = 0
+        self._lock = threading.Lock()
+
+    @contextmanager
+    def call(self) -> Iterator[bool]:
+        """Counts one call while it runs; yields whether it started while no other ran."""
+        with self._lock:
+            alone = self._count == 0
+            self._count += 1
+        try:
+            yield alone
+        finally:
+            with self._lock:
+                self._count -= 1
+
+
 class OnnxEngine:
     """The model in ONNX Runtime with graph optimisations on and intra-op threads sized to this process.
 
@@ -97,10 +122,13 @@ class OnnxEngine:
     for a lone request; one that starts beside others gets threads // model_calls, so that
     under load the calls share the CPUs out instead of their threads contending for them. Each
     thread count is its own session (a session's thread count is fixed when it opens); with one
-    call at a time, or one thread, there is just one.
+    call at a time, or one thread, there is just one. Engines that share `running` count each
+    other's calls, so that calls of several models share the CPUs out too.
     """
 
-    def __init__(self, path: Path, threads: int | None = None, model_calls: int = 1):
+    def __init__(
+        self, path: Path, threads: int | None = None, model_calls: int = 1, running: RunningCalls | None = None
+    ):
         path = Path(path)
         if not path.is_file():
             raise ModelLoadError(
@@ -112,8 +140,7 @@ class OnnxEngine:
         self._sessions = [_open_session(path, self.threads)]  # [alone, beside others] where the thread counts differ
         if self.threads_beside_others != self.threads:
             self._sessions.append(_open_session(path, self.threads_beside_others))
-        self._calls_running = 0
-        self._calls_lock = threading.Lock()
+        self._running = running or RunningCalls()
 
         inputs, outputs = self.session.get_inputs(), self.session.get_outputs()
         missing_in = set(REQUIRED_INPUTS) - {node.name for node in inputs}
@@ -140,7 +167,7 @@ class OnnxEngine:
         # Without the record, only the count the network was exported for is known to run.
         fewest = _metadata_count(metadata, "min_points", path, native, "giving it clouds of at least")
         self.info = ModelInfo(
-            name=metadata.get("model_name", "ifnet"),
+            name=path.stem,
             network_points=native,
             min_network_points=fewest,
             file_sha256=file_sha256(path),
@@ -172,14 +199,8 @@ class OnnxEngine:
         return self._sessions[0]
 
     def run(self, source: np.ndarray, target: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        with self._calls_lock:
-            session = self._sessions[0] if self._calls_running == 0 else self._sessions[-1]
-            self._calls_running += 1
-        try:
-            return self._run(session, source, target)
-        finally:
-            with self._calls_lock:
-                self._calls_running -= 1
+        with self._running.call() as alone:
+            return self._run(self._sessions[0] if alone else self._sessions[-1], source, target)
 
     def warm_up(self, source: np.ndarray, target: np.ndarray) -> None:
         """One call on every session, so that neither pays its first-call cost on a request."""
@@ -206,6 +227,38 @@ def _open_session(path: Path, threads: int):
         return ort.InferenceSession(str(path), options, providers=["CPUExecutionProvider"])
     except Exception as error:  # onnxruntime raises its own exception types for corrupt files
         raise ModelLoadError(f"model file {path} could not be loaded by onnxruntime: {error}") from error
+
+
+def model_files(settings: Settings) -> list[Path]:
+    """The files to serve, in the order `auto` asks them: IFNET_MODEL_PATH alone, else every `*.onnx`
+    file of the repository folder, `object.onnx` first and the others by name."""
+    if settings.model_path is not None:
+        return [settings.model_path]
+    folder = settings.model_repository
+    if not folder.is_dir():
+        raise ModelLoadError(
+            f"model repository {folder} is not a folder: set IFNET_MODEL_REPOSITORY (or --model-repository) to the "
+            "folder of the ONNX models"
+        )
+    files = sorted(folder.glob("*.onnx"), key=lambda path: (path.stem != DEFAULT_MODEL, path.stem))
+    if not files:
+        raise ModelLoadError(
+            f"model repository {folder} holds no .onnx file: put an IFNet ONNX export there "
+            f"(`python -m export --output {folder / DEFAULT_MODEL}.onnx`) or point IFNET_MODEL_REPOSITORY elsewhere"
+        )
+    if len(files) > 1 and files[0].stem != DEFAULT_MODEL:
+        raise ModelLoadError(
+            f"model repository {folder} has no {DEFAULT_MODEL}.onnx, the model of requests that name none: add it, "
+            "or serve one file alone with IFNET_MODEL_PATH"
+        )
+    return files
+
+
+def load_models(settings: Settings) -> list[OnnxEngine]:
+    """One engine per model file, in `model_files`' order, all or none: the first file that fails
+    raises ModelLoadError with its path and reason. The engines share one count of running calls."""
+    running = RunningCalls()
+    return [OnnxEngine(path, settings.threads, settings.model_calls, running) for path in model_files(settings)]
 
 
 def warm_up_engine(engine: Engine, batch_sizes: range | list[int], network_points: int) -> None:

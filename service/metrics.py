@@ -32,37 +32,46 @@ class Metrics:
         )
         self.queue_wait = Histogram(
             "ifnet_queue_wait_seconds",
-            "Time a pair waited in the batcher's queue before its model call.",
+            "Time a pair waited in its model's queue before its model call.",
+            ["model"],
             buckets=LATENCY_BUCKETS,
             registry=self.registry,
         )
         self.inference = Histogram(
             "ifnet_inference_seconds",
             "Duration of one ONNX Runtime call (a whole batch).",
+            ["model"],
             buckets=LATENCY_BUCKETS,
             registry=self.registry,
         )
         self.batch_size = Histogram(
             "ifnet_batch_size",
             "Pairs per model call.",
+            ["model"],
             buckets=tuple(range(1, max_batch_size + 1)),
             registry=self.registry,
         )
-        self.queue_depth = Gauge("ifnet_queue_depth", "Pairs waiting for the model.", registry=self.registry)
+        self.queue_depth = Gauge("ifnet_queue_depth", "Pairs waiting for a model.", ["model"], registry=self.registry)
         self.rejections = Counter(
             "ifnet_batcher_rejections",
-            "Pairs the batcher did not run, by reason.",
-            ["reason"],
+            "Pairs a model's batcher did not run, by reason.",
+            ["model", "reason"],
             registry=self.registry,
         )
         self.answers = Counter(
             "ifnet_answers",
-            "Registered pairs by the stage that gave the answer and whether it was verified.",
-            ["stage", "verified"],
+            "Registered pairs by the model and stage that gave the answer and whether it was verified.",
+            ["model", "stage", "verified"],
             registry=self.registry,
         )
-        self.ready = Gauge("ifnet_ready", "1 once the model is loaded and warmed up.", registry=self.registry)
-        self.model = Info("ifnet_model", "The served model.", registry=self.registry)
+        self.ready = Gauge("ifnet_ready", "1 once every model is loaded and warmed up.", registry=self.registry)
+        self.model = Info("ifnet_model", "A served model.", ["model"], registry=self.registry)
+
+    def add_model(self, name: str, version: str, network_points: int) -> None:
+        """Its info, and its series at zero from the start, so that a model not yet asked still shows."""
+        self.model.labels(name).info({"version": version, "network_points": str(network_points)})
+        for metric in (self.queue_wait, self.inference, self.batch_size, self.queue_depth):
+            metric.labels(name)
 
     def render(self) -> tuple[bytes, str]:
         return generate_latest(self.registry), CONTENT_TYPE_LATEST

@@ -1,8 +1,9 @@
-"""Open Inference Protocol (KServe v2) routes, sharing /register's pipeline and batcher.
+"""Open Inference Protocol (KServe v2) routes, sharing /register's pipeline and batchers.
 
-The v2 model takes clouds in the user's units, like /register: `source` [B, N, 3] and `target`
-[B, M, 3] FP32 (or [N, 3] for one pair), and answers `rotation` [B, 3, 3] and `translation`
-[B, 3] FP32. Each pair is deduplicated, resampled and normalised exactly as /register does.
+Every model of the repository is a v2 model. It takes clouds in the user's units, like /register:
+`source` [B, N, 3] and `target` [B, M, 3] FP32 (or [N, 3] for one pair), and answers `rotation`
+[B, 3, 3] and `translation` [B, 3] FP32. Each pair is deduplicated, resampled and normalised
+exactly as /register does. `GET /v2/models` lists the models, as Triton's repository index does.
 """
 
 import math
@@ -21,13 +22,15 @@ from service.schemas import (
     V2InferRequest,
     V2InferResponse,
     V2Live,
+    V2ModelList,
     V2ModelMetadata,
+    V2ModelSummary,
     V2Ready,
     V2ServerMetadata,
     V2Tensor,
     V2TensorMetadata,
 )
-from service.state import ServiceState
+from service.state import ServedModel, ServiceState
 from service.uploads import parse_json
 from service.validation import InvalidInput, as_points
 
@@ -40,12 +43,15 @@ OUTPUTS = [
 ]
 _ERRORS = {status: {"model": V2Error} for status in (400, 401, 404, 413, 422, 429, 503, 504)}
 
-ModelName = Annotated[str, Path(description="The served model's name.", examples=["ifnet"])]
+ModelName = Annotated[
+    str, Path(description="A served model's name (`GET /v2/models` lists them).", examples=["object"])
+]
 
 
-def _check_name(model_name: str, service: LoadedService) -> None:
-    if model_name != service.model.name:
-        raise HTTPException(404, f"model {model_name!r} is not served here; this server serves {service.model.name!r}")
+def _served(model_name: str, service: ServiceState) -> ServedModel:
+    if model_name not in service.models:
+        raise HTTPException(404, f"model {model_name!r} is not served here; this server serves {list(service.models)}")
+    return service.models[model_name]
 
 
 @router.get("", response_model=V2ServerMetadata, summary="Server metadata")
@@ -64,6 +70,18 @@ async def server_ready(service: Service) -> JSONResponse:
     return JSONResponse(V2Ready(ready=is_ready).model_dump(), status_code=200 if is_ready else 503)
 
 
+@router.get("/models", response_model=V2ModelList, responses={503: {"model": V2Error}}, summary="Models")
+async def models(service: LoadedService) -> V2ModelList:
+    """Every served model: its name, version and readiness (the models are ready all or none)."""
+    is_ready = service.ready.is_set()
+    return V2ModelList(
+        models=[
+            V2ModelSummary(name=name, version=model.info.version, ready=is_ready)
+            for name, model in service.models.items()
+        ]
+    )
+
+
 @router.get(
     "/models/{model_name}/ready",
     response_model=V2Ready,
@@ -71,14 +89,13 @@ async def server_ready(service: Service) -> JSONResponse:
     summary="Model readiness",
 )
 async def model_ready(model_name: ModelName, service: LoadedService) -> JSONResponse:
-    _check_name(model_name, service)
+    _served(model_name, service)
     return await server_ready(service)
 
 
 @router.get("/models/{model_name}", response_model=V2ModelMetadata, responses=_ERRORS, summary="Model metadata")
 async def model_metadata(model_name: ModelName, service: LoadedService) -> V2ModelMetadata:
-    _check_name(model_name, service)
-    info = service.model
+    info = _served(model_name, service).info
     return V2ModelMetadata(
         name=info.name,
         versions=[info.version],
@@ -148,13 +165,16 @@ def _flat_numbers(data: list, name: str) -> list:
     summary="Register point clouds (v2 inference)",
 )
 async def infer(model_name: ModelName, request: Request, service: AdmittedService) -> V2InferResponse:
-    """Same pipeline and batcher as /register; `parameters` may set `network_points`, `sampling` and `seed`."""
-    _check_name(model_name, service)
+    """That model's network, through the same pipeline and batcher as /register; `parameters` may set
+    the options of /register (`network_points`, `sampling`, `seed`, ...)."""
+    model = _served(model_name, service)
     async with request_deadline(service.settings):
-        return await _infer(await parse_json(request, V2InferRequest), request, service)
+        return await _infer(await parse_json(request, V2InferRequest), request, service, model)
 
 
-async def _infer(payload: V2InferRequest, request: Request, service: ServiceState) -> V2InferResponse:
+async def _infer(
+    payload: V2InferRequest, request: Request, service: ServiceState, model: ServedModel
+) -> V2InferResponse:
     tensors = {tensor.name: tensor for tensor in payload.inputs}
     for name in ("source", "target"):
         if name not in tensors:
@@ -169,6 +189,9 @@ async def _infer(payload: V2InferRequest, request: Request, service: ServiceStat
     if len(source) != len(target):
         raise InvalidInput("target", f"batch size {len(target)} differs from the source's {len(source)}")
     options = RegistrationOptions.model_validate(payload.parameters or {})
+    if options.model not in (None, model.info.name):
+        raise InvalidInput("model", f"is {options.model!r} in the parameters but {model.info.name!r} in the path")
+    options = options.model_copy(update={"model": model.info.name})
     results = await register_pairs(service, request, list(zip(source, target, strict=True)), options)
     wanted = [requested.name for requested in payload.outputs] if payload.outputs else ["rotation", "translation"]
     values = {
@@ -176,8 +199,8 @@ async def _infer(payload: V2InferRequest, request: Request, service: ServiceStat
         "translation": np.stack([result.translation for result in results]).astype(np.float32),
     }
     return V2InferResponse(
-        model_name=service.model.name,
-        model_version=service.model.version,
+        model_name=model.info.name,
+        model_version=model.info.version,
         id=payload.id,
         outputs=[
             V2Tensor(name=name, shape=list(values[name].shape), datatype="FP32", data=values[name].ravel().tolist())

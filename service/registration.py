@@ -6,15 +6,15 @@ centres each and scales both by one common factor to the network's radius
 (`model.geometry.NETWORK_RADIUS`), asks the model (any async callable) for the transform between
 the normalised clouds, maps it back into the user's units, composes it with the initial guess,
 optionally refines it (GICP on the full clouds) and checks it (`model.geometry.verify_alignment`).
-Where the method allows and the answer fails the check, the global path follows: feature
-matching, then the network from rotated starts. `register_pairs` runs a request's pairs through
-it and the shared batcher.
+Where the method allows and the answer fails the check, the other models' networks follow in turn,
+then the global path: feature matching, then the first network from rotated starts.
+`register_pairs` runs a request's pairs through it and the models' batchers.
 """
 
 import asyncio
 import dataclasses
 import time
-from collections.abc import AsyncIterator, Awaitable, Callable
+from collections.abc import AsyncIterator, Awaitable, Callable, Sequence
 from contextlib import asynccontextmanager
 from dataclasses import dataclass
 from typing import Any, Literal, TypeVar
@@ -75,6 +75,15 @@ class ClientDisconnected(Exception):
 
 
 @dataclass(frozen=True)
+class Network:
+    """One model's network as the pipeline asks it."""
+
+    model: str  # the model's name
+    network_points: int  # points per cloud it is given
+    predict: Predict  # normalised clouds -> transform (in production: the model's batcher)
+
+
+@dataclass(frozen=True)
 class CloudReport:
     received: int
     duplicates_removed: int
@@ -107,6 +116,7 @@ class RegistrationResult:
     verified: bool  # the answer passed the check (model.geometry.verify_alignment)
     reason: str | None  # why not, when verified is False
     stage: "Stage"  # which part of the pipeline gave the answer
+    model: str  # whose network gave it (for `features`, the request's first network's)
     points: CloudReports
     refinement: RefineReport | None
     timings_ms: dict[str, float]  # queue, inference, preprocess, postprocess; batch_size
@@ -144,10 +154,10 @@ class _Prepared:
     seconds: float
 
 
-def _prepare(source: np.ndarray, target: np.ndarray, options: RegistrationOptions, settings: Settings) -> _Prepared:
+def _prepare(
+    source: np.ndarray, target: np.ndarray, count: int, options: RegistrationOptions, settings: Settings
+) -> _Prepared:
     started = time.perf_counter()
-    count = options.network_points
-    assert count is not None, "register_pairs resolves the network's point count"
     clouds, sampled, reports = {}, {}, {}
     for name, points in (("source", source), ("target", target)):
         unique = check_cloud(points, name, settings.min_points, settings.max_cloud_points)
@@ -221,7 +231,12 @@ def _checked(prepared: _Prepared, rotation: np.ndarray, translation: np.ndarray,
 
 
 def _result(
-    prepared: _Prepared, chosen: _Candidate, stage: Stage, options: RegistrationOptions, timings: dict[str, float]
+    prepared: _Prepared,
+    chosen: _Candidate,
+    stage: Stage,
+    model: str,
+    options: RegistrationOptions,
+    timings: dict[str, float],
 ) -> RegistrationResult:
     score = chosen.verification.score
     fitness, inlier_rmse, threshold = score.fitness, score.inlier_rmse, score.threshold
@@ -238,22 +253,25 @@ def _result(
         verified=chosen.verification.verified,
         reason=chosen.verification.reason,
         stage=stage,
+        model=model,
         points=prepared.points,
         refinement=chosen.refinement,
         timings_ms={"preprocess_ms": prepared.seconds * 1000.0, **timings},
     )
 
 
-def _finish(prepared: _Prepared, prediction: Prediction, options: RegistrationOptions) -> RegistrationResult:
+def _finish(
+    prepared: _Prepared, prediction: Prediction, model: str, options: RegistrationOptions
+) -> RegistrationResult:
     """The network's answer, refined if asked, and checked."""
     started = time.perf_counter()
     rotation, translation = _user_transform(prepared, prediction, np.eye(3))
     chosen = _checked(prepared, rotation, translation, options.refine)
     timings = _model_timings([prediction]) | {"postprocess_ms": (time.perf_counter() - started) * 1000.0}
-    return _result(prepared, chosen, "ifnet", options, timings)
+    return _result(prepared, chosen, "ifnet", model, options, timings)
 
 
-def _finish_features(prepared: _Prepared, options: RegistrationOptions) -> RegistrationResult:
+def _finish_features(prepared: _Prepared, model: str, options: RegistrationOptions) -> RegistrationResult:
     """Feature matching (KISS-Matcher), whatever the rotation, refined and checked."""
     started = time.perf_counter()
     # KISS-Matcher holds the interpreter lock for its whole run: it gets a smaller subset.
@@ -262,11 +280,11 @@ def _finish_features(prepared: _Prepared, options: RegistrationOptions) -> Regis
     chosen = _checked(prepared, rotation, translation, options.refine or RefineOptions())  # a coarse answer
     postprocess_ms = (time.perf_counter() - started) * 1000.0
     timings = {"queue_ms": 0.0, "inference_ms": 0.0, "batch_size": 0, "postprocess_ms": postprocess_ms}
-    return _result(prepared, chosen, "features", options, timings)
+    return _result(prepared, chosen, "features", model, options, timings)
 
 
 def _finish_multistart(
-    prepared: _Prepared, predictions: list[Prediction], options: RegistrationOptions
+    prepared: _Prepared, predictions: list[Prediction], model: str, options: RegistrationOptions
 ) -> list[RegistrationResult]:
     """The network's answers from the rotated starts: the best few by fitness, each refined and
     checked (every one of them can contradict another)."""
@@ -282,7 +300,7 @@ def _finish_multistart(
     best = ranked[:STARTS_REFINED]
     candidates = [_checked(prepared, rotation, translation, refine_options) for _, rotation, translation in best]
     timings = _model_timings(predictions) | {"postprocess_ms": (time.perf_counter() - started) * 1000.0}
-    first, *others = [_result(prepared, candidate, "multistart", options, timings) for candidate in candidates]
+    first, *others = [_result(prepared, candidate, "multistart", model, options, timings) for candidate in candidates]
     free = {"queue_ms": 0.0, "inference_ms": 0.0, "batch_size": 0, "postprocess_ms": 0.0}
     return [first, *(dataclasses.replace(other, timings_ms=dict(free)) for other in others)]  # paid once
 
@@ -305,32 +323,44 @@ async def register_clouds(
     target: np.ndarray,
     options: RegistrationOptions,
     settings: Settings,
-    predict: Predict,
+    networks: Sequence[Network],
     run_blocking: RunBlocking = asyncio.to_thread,
 ) -> RegistrationResult:
     """Register `source` onto `target` (both N x 3 in user units, already through `as_points`).
 
-    `options.network_points` and `options.method` must be set (`resolve_options`). `predict` receives the two
-    normalised float32 clouds [network_points, 3] and returns the transform between them (in
-    production: the batcher). `options.method` picks the path: the network (`ifnet`), the global
-    search (`global`), or the network and, when its answer fails the check, the global search
-    (`auto`). The CPU-heavy steps run through `run_blocking` (a worker thread by default) so that
-    the event loop keeps serving. Raises InvalidInput for clouds that cannot be registered.
+    `options.method` must be set (`resolve_options`). Each network's `predict` receives the two
+    normalised float32 clouds [network_points, 3] and returns the transform between them.
+    `options.method` picks the path: the first network (`ifnet`), the global search with the first
+    network (`global`), or the networks in turn until an answer passes the check and, when none
+    does, the global search (`auto`). The CPU-heavy steps run through `run_blocking` (a worker
+    thread by default) so that the event loop keeps serving. Raises InvalidInput for clouds that
+    cannot be registered.
     """
-    prepared = await run_blocking(_prepare, source, target, options, settings)
+    first = networks[0]
+    prepared = {
+        first.network_points: await run_blocking(_prepare, source, target, first.network_points, options, settings)
+    }
     answers = []
     if options.method != "global":
-        prediction = await predict(prepared.source_network, prepared.target_network)
-        answers.append(await run_blocking(_finish, prepared, prediction, options))
+        for network in networks if options.method == "auto" else networks[:1]:
+            count = network.network_points
+            if count not in prepared:  # a model exported for another point count
+                prepared[count] = await run_blocking(_prepare, source, target, count, options, settings)
+            prediction = await network.predict(prepared[count].source_network, prepared[count].target_network)
+            answers.append(await run_blocking(_finish, prepared[count], prediction, network.model, options))
+            if answers[-1].verified:
+                break
         if not answers[0].verified and options.method == "ifnet":
             return answers[0]
+    # The global path runs on the first network's clouds: the check's clouds are the same for every count.
+    base = prepared[first.network_points]
     # Feature matching: the global path's cheapest stage, and a second opinion on a verified answer.
-    features = await run_blocking(_finish_features, prepared, options)
+    features = await run_blocking(_finish_features, base, first.model, options)
     answers.append(features)
     if not any(answer.verified for answer in answers):
-        turned = [prepared.source_network @ start.T.astype(np.float32) for start in STARTS]
-        predictions = await asyncio.gather(*(predict(cloud, prepared.target_network) for cloud in turned))
-        answers += await run_blocking(_finish_multistart, prepared, list(predictions), options)
+        turned = [base.source_network @ start.T.astype(np.float32) for start in STARTS]
+        predictions = await asyncio.gather(*(first.predict(cloud, base.target_network) for cloud in turned))
+        answers += await run_blocking(_finish_multistart, base, list(predictions), first.model, options)
     # `ifnet` answers with the network, whatever else fits; the other stages only judge it.
     best = answers[0] if options.method == "ifnet" else max(answers, key=_rank)
     for answer in answers:  # the request paid for every stage that ran
@@ -356,49 +386,55 @@ def _unless_contradicted(best: RegistrationResult, answers: list[RegistrationRes
 # ---------------------------------------------------------------- a request's pairs
 
 
-def resolve_options(options: RegistrationOptions, service: ServiceState) -> RegistrationOptions:
-    """The options with the network's point count filled in, checked against the service and model."""
-    limit, fewest = service.settings.max_network_points, service.model.min_network_points
-    count = options.network_points
+def resolve_options(options: RegistrationOptions, service: ServiceState) -> tuple[RegistrationOptions, list[Network]]:
+    """The options with the method filled in, and the networks the request may ask, in order: the
+    model it names (or the default and, under `auto`, the others after it), each checked against
+    the request's point count."""
+    method = options.method or service.settings.default_method
+    first = service.model(options.model)
+    models = [first]
+    if method == "auto" and options.model is None:
+        models += [model for model in service.models.values() if model is not first]
+    limit, count = service.settings.max_network_points, options.network_points
     if count is not None and count > limit:
         raise InvalidInput("network_points", f"is {count}, more than this service's limit of {limit}")
-    if count is not None and count < fewest:
-        raise InvalidInput("network_points", f"is {count}; this model needs at least {fewest} points per cloud")
-    return options.model_copy(
-        update={
-            "network_points": count or service.model.network_points,
-            "method": options.method or service.settings.default_method,
-        }
-    )
+    networks = []
+    for model in models:
+        info = model.info
+        fewest = info.min_network_points
+        if count is not None and count < fewest:
+            raise InvalidInput(
+                "network_points", f"is {count}; model {info.name!r} needs at least {fewest} points per cloud"
+            )
+        # No wait limit of the batcher's own: the request's deadline bounds the whole request, and
+        # cancelling it drops the pair from the queue.
+        networks.append(Network(info.name, count or info.network_points, model.batcher.submit))
+    return options.model_copy(update={"method": method}), networks
 
 
 async def register_pairs(
     service: ServiceState, request: Request, pairs: list[tuple[np.ndarray, np.ndarray]], options: RegistrationOptions
 ) -> list[RegistrationResult]:
-    """Run pairs through the registration pipeline and the shared batcher, concurrently.
+    """Run pairs through the registration pipeline and the models' batchers, concurrently.
 
     With several pairs, errors name the pair (`source[1]`). All pairs are dropped from the
     queue if the client disconnects while they wait.
     """
-    assert service.batcher is not None
-    options = resolve_options(options, service)
-    room = service.batcher.max_queue_size
+    options, networks = resolve_options(options, service)
+    room = service.settings.max_queue_size
     if len(pairs) > room:  # could never be queued at once, however long the client waited
         raise InvalidInput(
             "source", f"holds {len(pairs)} pairs, more than this service queues at once; send at most {room}"
         )
-    # No wait limit of the batcher's own: the request's deadline bounds the whole request, and
-    # cancelling it drops the pair from the queue.
-    predict = service.batcher.submit
 
     async def one(index: int, source: np.ndarray, target: np.ndarray) -> RegistrationResult:
         try:
-            result = await register_clouds(source, target, options, service.settings, predict)
+            result = await register_clouds(source, target, options, service.settings, networks)
         except InvalidInput as error:
             if len(pairs) == 1:
                 raise
             raise InvalidInput(f"{error.field}[{index}]", error.problem) from None
-        service.metrics.answers.labels(result.stage, str(result.verified).lower()).inc()
+        service.metrics.answers.labels(result.model, result.stage, str(result.verified).lower()).inc()
         return result
 
     async def all_pairs() -> list[RegistrationResult]:

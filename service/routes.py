@@ -14,6 +14,7 @@ from service.schemas import (
     ErrorResponse,
     HealthResponse,
     LatencySummary,
+    ModelHealth,
     ReadyResponse,
     RegisterResponse,
 )
@@ -70,7 +71,7 @@ _ERRORS = {
         "model": ErrorResponse,
         "description": "Too many requests in progress, or the queue is full; retry after `Retry-After` seconds.",
     },
-    503: {"model": ErrorResponse, "description": "Model not loaded yet, or shutting down."},
+    503: {"model": ErrorResponse, "description": "Models not loaded yet, or shutting down."},
     504: {"model": ErrorResponse, "description": "No model result within the request timeout."},
 }
 
@@ -101,7 +102,7 @@ async def register(
     (PLY, PCD or NPY each), or as one raw NPY [2, N, 3] / NPZ (`source`, `target`) body. Exact
     duplicate points are removed (and counted in the answer), each cloud is resampled to the
     network's point count, and both are scaled to the radius of the network's training crops before
-    the network runs.
+    the network runs. The `model` option picks the network by name (`GET /v2/models` lists them).
     """
     started = time.perf_counter()
     async with request_deadline(service.settings):
@@ -109,18 +110,19 @@ async def register(
         read_ms = (time.perf_counter() - started) * 1000.0
         (result,) = await register_pairs(service, request, [(source, target)], parsed)
     total_ms = (time.perf_counter() - started) * 1000.0
-    return RegisterResponse.from_result(result, service.model_description(), read_ms, total_ms)
+    return RegisterResponse.from_result(result, service.model(result.model).description(), read_ms, total_ms)
 
 
 @router.get(
     "/health",
     response_model=HealthResponse,
-    responses={503: {"model": HealthResponse, "description": "The model's warm-up failed: restart the process."}},
+    responses={503: {"model": HealthResponse, "description": "A model's warm-up failed: restart the process."}},
     summary="Liveness",
     tags=["operations"],
 )
 async def health(service: Service) -> JSONResponse:
-    """Cheap liveness check that never touches the model, with recent /register latency percentiles.
+    """Cheap liveness check that never touches a model, with recent /register latency percentiles and
+    each model's queue.
 
     503 once warm-up has failed, a state the process does not leave by itself, so that a liveness
     probe restarts it rather than leaving it alive and never ready.
@@ -130,9 +132,18 @@ async def health(service: Service) -> JSONResponse:
         detail=service.warmup_error,
         ready=service.ready.is_set(),
         uptime_s=time.monotonic() - service.started_at,
-        queue_depth=service.batcher.queue_depth if service.batcher is not None else 0,
+        queue_depth=sum(model.batcher.queue_depth for model in service.models.values()),
         in_flight=service.in_flight,
         latency=LatencySummary(**service.latency.summary()),
+        models=[
+            ModelHealth(
+                name=name,
+                version=model.info.version,
+                ready=service.ready.is_set(),
+                queue_depth=model.batcher.queue_depth,
+            )
+            for name, model in service.models.items()
+        ],
     )
     return JSONResponse(answer.model_dump(), status_code=503 if service.warmup_error else 200)
 
@@ -140,16 +151,18 @@ async def health(service: Service) -> JSONResponse:
 @router.get(
     "/ready",
     response_model=ReadyResponse,
-    responses={503: {"model": ReadyResponse, "description": "Model not loaded or not warmed up yet."}},
+    responses={503: {"model": ReadyResponse, "description": "Models not loaded or not warmed up yet."}},
     summary="Readiness",
     tags=["operations"],
 )
 async def ready(service: Service) -> JSONResponse:
-    """200 once the model is loaded and warmed up at every batch size; 503 before (and while stopping)."""
+    """200 once every model is loaded and warmed up at every batch size; 503 before (and while stopping)."""
     if service.ready.is_set():
-        return JSONResponse(ReadyResponse(ready=True, detail="model loaded and warmed up").model_dump())
+        return JSONResponse(
+            ReadyResponse(ready=True, detail=f"models loaded and warmed up: {', '.join(service.models)}").model_dump()
+        )
     detail = service.warmup_error or (
-        "loading the model" if service.engine is None else "warming up the model" if service.accepting else "stopping"
+        "loading the models" if not service.models else "warming up the models" if service.accepting else "stopping"
     )
     return JSONResponse(ReadyResponse(ready=False, detail=detail).model_dump(), status_code=503)
 
@@ -162,6 +175,7 @@ async def ready(service: Service) -> JSONResponse:
     tags=["operations"],
 )
 async def metrics(service: Service) -> Response:
-    """Request counts by status, latency, queue wait, batch size and inference time, in Prometheus text format."""
+    """Request counts by status and latency; per model (label `model`) queue wait, batch size, inference
+    time and answers; in Prometheus text format."""
     body, content_type = service.metrics.render()
     return Response(body, media_type=content_type)

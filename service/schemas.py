@@ -136,6 +136,14 @@ class RegistrationOptions(BaseModel):
         description="Points per cloud given to the network (default: the model's own count). Larger clouds are "
         "subsampled to it, smaller ones upsampled by repeating points. `max_points` is accepted as an older name.",
     )
+    model: str | None = Field(
+        None,
+        min_length=1,
+        max_length=200,
+        description="The model whose network runs, by name (`GET /v2/models` lists them). Default: `object` (or the "
+        "one model served), and with `method` `auto` the other models' networks in turn where an answer fails the "
+        "check, before the search.",
+    )
     method: Method | None = Field(
         None,
         description="`ifnet`: the network's answer, checked. `global`: a search that handles any rotation (the network "
@@ -213,7 +221,7 @@ class Refinement(BaseModel):
 class ModelDescription(BaseModel):
     model_config = ConfigDict(protected_namespaces=(), from_attributes=True)
 
-    name: str
+    name: str = Field(description="The model's name in the repository (its file's name without `.onnx`).")
     version: str = Field(description="First 12 hex digits of the weights' (or model file's) SHA-256.")
     weights_sha256: str | None = None
     file_sha256: str
@@ -261,7 +269,7 @@ class RegisterResponse(BaseModel):
                     },
                     "refinement": None,
                     "model": {
-                        "name": "ifnet",
+                        "name": "object",
                         "version": "ca91aa32a6d4",
                         "weights_sha256": "ca91aa32a6d47a70244a359ce08fb45dbb45fb80c0d2126a7149bdf37078f76c",
                         "file_sha256": "a50a0e58ddcabf7935ff71c8d5a853735eba4d304129312aea2a5794eeb23e52",
@@ -300,7 +308,9 @@ class RegisterResponse(BaseModel):
     )
     points: CloudPointCounts
     refinement: Refinement | None
-    model: ModelDescription
+    model: ModelDescription = Field(
+        description="The model whose network gave the answer; for `features`, the request's model (named or default)."
+    )
     timings_ms: Timings
 
     @classmethod
@@ -342,6 +352,13 @@ class LatencySummary(BaseModel):
     p99_ms: float | None
 
 
+class ModelHealth(BaseModel):
+    name: str
+    version: str
+    ready: bool = Field(description="Loaded and warmed up (the service's models are ready all or none).")
+    queue_depth: int = Field(description="Pairs waiting for this model.")
+
+
 class HealthResponse(BaseModel):
     model_config = ConfigDict(
         json_schema_extra={
@@ -353,6 +370,7 @@ class HealthResponse(BaseModel):
                     "queue_depth": 0,
                     "in_flight": 1,
                     "latency": {"count": 1000, "p50_ms": 95.1, "p95_ms": 180.4, "p99_ms": 260.0},
+                    "models": [{"name": "object", "version": "ca91aa32a6d4", "ready": True, "queue_depth": 0}],
                 }
             ]
         }
@@ -364,13 +382,16 @@ class HealthResponse(BaseModel):
     detail: str | None = Field(None, description="What failed, when status is `failed`.")
     ready: bool
     uptime_s: float
-    queue_depth: int = Field(description="Pairs waiting for the model.")
+    queue_depth: int = Field(description="Pairs waiting for a model, all models together.")
     in_flight: int = Field(description="Registration requests admitted and not yet answered (at most max_in_flight).")
     latency: LatencySummary
+    models: list[ModelHealth] = Field(description="Each served model (empty until they are loaded).")
 
 
 class ReadyResponse(BaseModel):
-    model_config = ConfigDict(json_schema_extra={"examples": [{"ready": True, "detail": "model loaded and warmed up"}]})
+    model_config = ConfigDict(
+        json_schema_extra={"examples": [{"ready": True, "detail": "models loaded and warmed up: object"}]}
+    )
 
     ready: bool
     detail: str
@@ -433,7 +454,7 @@ class V2InferResponse(BaseModel):
         json_schema_extra={
             "examples": [
                 {
-                    "model_name": "ifnet",
+                    "model_name": "object",
                     "model_version": "ca91aa32a6d4",
                     "id": "pair-1",
                     "outputs": [
@@ -472,7 +493,7 @@ class V2ModelMetadata(BaseModel):
         json_schema_extra={
             "examples": [
                 {
-                    "name": "ifnet",
+                    "name": "object",
                     "versions": ["3f2a9c01d4e5"],
                     "platform": "onnxruntime_onnx",
                     "inputs": [
@@ -494,6 +515,20 @@ class V2ModelMetadata(BaseModel):
     inputs: list[V2TensorMetadata]
     outputs: list[V2TensorMetadata]
     parameters: dict[str, Any] = Field(default_factory=dict)
+
+
+class V2ModelSummary(BaseModel):
+    name: str
+    version: str
+    ready: bool
+
+
+class V2ModelList(BaseModel):
+    model_config = ConfigDict(
+        json_schema_extra={"examples": [{"models": [{"name": "object", "version": "ca91aa32a6d4", "ready": True}]}]}
+    )
+
+    models: list[V2ModelSummary]
 
 
 class V2ServerMetadata(BaseModel):

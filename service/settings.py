@@ -8,7 +8,7 @@ from pydantic_settings import BaseSettings, SettingsConfigDict
 
 from service.cpus import available_cpus
 
-DEFAULT_MODEL_PATH = Path(__file__).resolve().parent / "models" / "ifnet.onnx"
+MODEL_REPOSITORY = Path(__file__).resolve().parent / "models"
 
 
 class Settings(BaseSettings):
@@ -18,20 +18,27 @@ class Settings(BaseSettings):
 
     host: str = Field("127.0.0.1", description="Interface to listen on.")
     port: int = Field(8000, ge=0, le=65535, description="TCP port to listen on.")
-    model_path: Path = Field(DEFAULT_MODEL_PATH, description="ONNX model file (IFNet export).")
+    model_repository: Path = Field(
+        MODEL_REPOSITORY,
+        description="Folder of the served models: every `*.onnx` file in it (an IFNet export), named by its file "
+        "name without `.onnx`; requests that name no model use `object`.",
+    )
+    model_path: Path | None = Field(
+        None, description="One ONNX model file to serve alone instead of the repository's, named as there."
+    )
     threads: int | None = Field(
         None,
         ge=1,
-        description="ONNX Runtime threads of a model call that runs alone (calls beside others share them out); "
-        "default: the CPUs this process may use.",
+        description="ONNX Runtime threads of a model call that runs alone (calls beside others, of any model, share "
+        "them out); default: the CPUs this process may use.",
     )
     # Two calls side by side, no batching: what served most pairs/s when measured (docs/benchmarks.md).
     model_calls: int = Field(
         2,
         ge=1,
         le=16,
-        description="Model calls run at once (at most one per thread): one that starts alone gets all `threads`, "
-        "one that starts beside others `threads` / model_calls.",
+        description="Model calls run at once, whatever their models (at most one per thread): one that starts alone "
+        "gets all `threads`, one that starts beside others `threads` / model_calls.",
     )
     max_batch_size: int = Field(1, ge=1, le=64, description="Most requests run in one model call.")
     max_batch_delay_ms: float = Field(
@@ -44,7 +51,7 @@ class Settings(BaseSettings):
         description="Registration requests admitted at once (reading, parsing, queued or running); more get 429 "
         "before their body is read, which bounds the memory and CPU that request bodies can take.",
     )
-    max_queue_size: int = Field(64, ge=1, description="Pairs that may wait for the model; more get 429.")
+    max_queue_size: int = Field(64, ge=1, description="Pairs that may wait for one model; more get 429.")
     request_timeout_s: float = Field(
         30.0,
         gt=0.0,
@@ -76,7 +83,7 @@ class Settings(BaseSettings):
         description="The registration method of requests that do not name one: `ifnet` bounds every request to one "
         "model call, `auto` adds the global search where the network's answer fails its check.",
     )
-    warmup: bool = Field(True, description="Run the model once per batch size before reporting ready.")
+    warmup: bool = Field(True, description="Run each model once per batch size before reporting ready.")
     shutdown_timeout_s: float = Field(30.0, gt=0.0, description="Grace period for in-flight requests on SIGTERM.")
     log_level: Literal["critical", "error", "warning", "info", "debug"] = "info"
     api_key: SecretStr | None = Field(

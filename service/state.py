@@ -1,13 +1,31 @@
-"""What the routes share: settings, the engine and batcher, metrics and the service's life cycle."""
+"""What the routes share: settings, the models (each an engine and its batcher), metrics and the
+service's life cycle."""
 
 import asyncio
 import time
+from dataclasses import dataclass
 
 from service.batcher import MicroBatcher
 from service.engine import Engine, ModelInfo
 from service.metrics import LatencyWindow, Metrics
 from service.schemas import ModelDescription
 from service.settings import Settings
+from service.validation import InvalidInput
+
+
+@dataclass(frozen=True)
+class ServedModel:
+    """One model of the repository: its engine and the batcher in front of it."""
+
+    engine: Engine
+    batcher: MicroBatcher
+
+    @property
+    def info(self) -> ModelInfo:
+        return self.engine.info
+
+    def description(self) -> ModelDescription:
+        return ModelDescription.model_validate(self.info, from_attributes=True)
 
 
 class ServiceState:
@@ -16,18 +34,36 @@ class ServiceState:
         self.metrics = Metrics(settings.max_batch_size)
         self.latency = LatencyWindow(settings.latency_window)
         self.started_at = time.monotonic()
-        self.engine: Engine | None = None
-        self.batcher: MicroBatcher | None = None
-        self.ready = asyncio.Event()
+        # By name, in the order `auto` asks them (the default first); empty until the app's lifespan loads them.
+        self.models: dict[str, ServedModel] = {}
+        self.ready = asyncio.Event()  # every model loaded and warmed up: they are served all or none
         self.warmup_error: str | None = None
         self.accepting = True  # False once shutdown has begun
         self.in_flight = 0  # registration requests admitted and not yet answered (see dependencies.admit)
         self.large_json_parse = asyncio.Lock()  # see uploads.parse_json
 
-    @property
-    def model(self) -> ModelInfo:
-        assert self.engine is not None, "the engine is loaded in the app's lifespan"
-        return self.engine.info
+    def serve(self, engines: list[Engine]) -> None:
+        """A batcher for each engine, in the engines' order (their model calls share `model_calls` slots),
+        and its metrics."""
+        settings = self.settings
+        slots = asyncio.Semaphore(settings.model_calls)
+        for engine in engines:
+            batcher = MicroBatcher(
+                engine,
+                max_batch_size=settings.max_batch_size,
+                max_queue_size=settings.max_queue_size,
+                max_batch_delay_ms=settings.max_batch_delay_ms,
+                model_calls=settings.model_calls,
+                slots=slots,
+                metrics=self.metrics,
+            )
+            self.models[engine.info.name] = ServedModel(engine, batcher)
+            self.metrics.add_model(engine.info.name, engine.info.version, engine.info.network_points)
 
-    def model_description(self) -> ModelDescription:
-        return ModelDescription.model_validate(self.model, from_attributes=True)
+    def model(self, name: str | None) -> ServedModel:
+        """The model a request names, or the default (the first) when it names none."""
+        if name is None:
+            return next(iter(self.models.values()))
+        if name not in self.models:
+            raise InvalidInput("model", f"is {name!r}, not a model of this service; choose one of {list(self.models)}")
+        return self.models[name]

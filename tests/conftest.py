@@ -18,7 +18,7 @@ import pytest
 REPO = Path(__file__).resolve().parents[1]
 SHARED_DATA = REPO.parent / "shared" / "data"
 REAL_SCANS = SHARED_DATA / "real_scans.npz"
-SHIPPED_MODEL = REPO / "service" / "models" / "ifnet.onnx"
+SHIPPED_MODEL = REPO / "service" / "models" / "object.onnx"
 TINY_MODEL_POINTS = 64
 
 
@@ -113,7 +113,8 @@ def tiny_model_builder():
 
 @pytest.fixture(scope="session")
 def tiny_model(tmp_path_factory) -> Path:
-    return build_tiny_model(tmp_path_factory.mktemp("models") / "tiny.onnx")
+    """The tiny model as `object`, the name requests without `model` use, alone in its folder."""
+    return build_tiny_model(tmp_path_factory.mktemp("models") / "object.onnx")
 
 
 class GatedEngine:
@@ -151,7 +152,7 @@ def gated_engine():
 
 @pytest.fixture
 def serve():
-    """serve(settings, engine=None, wait_ready=True): async context manager yielding (app, client).
+    """serve(settings, engines=None, wait_ready=True): async context manager yielding (app, client).
 
     Runs the app's lifespan (model loading, warm-up, shutdown drain) around an httpx client
     that talks to it in-process.
@@ -161,8 +162,8 @@ def serve():
     from service.app import create_app
 
     @asynccontextmanager
-    async def running(settings, engine=None, wait_ready: bool = True):
-        app = create_app(settings, engine=engine)
+    async def running(settings, engines=None, wait_ready: bool = True):
+        app = create_app(settings, engines=engines)
         async with app.router.lifespan_context(app):
             transport = httpx.ASGITransport(app=app)
             async with httpx.AsyncClient(transport=transport, base_url="http://testserver", timeout=60) as client:
@@ -240,14 +241,23 @@ def service_process(tmp_path: Path, model: Path, **settings: str):
 
 
 def pipeline_inputs(
-    network_points: int, *, min_points: int = 32, max_cloud_points: int = 500_000, method: str = "ifnet", **options
+    network_points: int,
+    predict,
+    *,
+    min_points: int = 32,
+    max_cloud_points: int = 500_000,
+    method: str = "ifnet",
+    **options,
 ):
-    """The options and settings that service.registration.register_clouds takes, for tests of the pipeline alone."""
+    """The options, settings and networks (one, `object`, answering with `predict`) that
+    service.registration.register_clouds takes, for tests of the pipeline alone."""
+    from service.registration import Network
     from service.schemas import RegistrationOptions
     from service.settings import Settings
 
     settings = Settings(min_points=min_points, max_cloud_points=max_cloud_points)
-    return RegistrationOptions(network_points=network_points, method=method, **options), settings
+    options = RegistrationOptions(network_points=network_points, method=method, **options)
+    return options, settings, [Network("object", network_points, predict)]
 
 
 CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")

@@ -77,7 +77,7 @@ async def test_register_answers_with_a_consistent_transform(serve, tiny_model):
         "network_points": 64,
         "upsampled": False,
     }
-    assert answer["model"]["name"] == "ifnet" and answer["model"]["version"] == "0" * 12
+    assert answer["model"]["name"] == "object" and answer["model"]["version"] == "0" * 12
     assert (
         answer["model"]["network_points"] == answer["model"]["native_num_points"] == 64 and answer["refinement"] is None
     )
@@ -121,7 +121,7 @@ VALID_INIT = [[1, 0, 0, 0.5], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]]
         (body(init=[[1, 0, 0], [0, 1, 0], [0, 0, 1]]), "init", r"4x4 matrix, got shape \[3, 3\]"),
         (body(network_points=4096), "network_points", "more than this service's limit"),
         (body(network_points=2), "network_points", "greater than or equal to 8"),
-        (body(max_points=10), "network_points", "is 10; this model needs at least 16 points per cloud"),
+        (body(max_points=10), "network_points", "is 10; model 'object' needs at least 16 points per cloud"),
         (body(sampling="voxel"), "sampling", "'fps' or 'random'"),
         (body(seed=-1), "seed", "greater than or equal to 0"),
         (body(refine={"max_distance": -1}), "refine", "greater than 0"),
@@ -212,8 +212,8 @@ async def test_bodies_over_the_limit_get_413(serve, tiny_model):
         declared = await client.post("/register", content=encoded, headers={"content-type": "application/json"})
         streamed = await client.post("/register", content=chunks(), headers={"content-type": "application/json"})
         upload = await client.post("/register", files={"source": ("a.npy", b"\x93NUMPY" + b"0" * 60_000)})
-        v2_declared = await client.post("/v2/models/ifnet/infer", content=encoded)
-        v2_streamed = await client.post("/v2/models/ifnet/infer", content=chunks())
+        v2_declared = await client.post("/v2/models/object/infer", content=encoded)
+        v2_streamed = await client.post("/v2/models/object/infer", content=chunks())
         metrics = (await client.get("/metrics")).text
     assert 'ifnet_http_requests_total{method="POST",route="/register",status="413"} 3.0' in metrics
     for response in (declared, streamed, upload):
@@ -274,7 +274,7 @@ async def test_compressed_body_errors_name_the_problem(serve, tiny_model):
             await client.post("/register", content=data, headers={**JSON_HEADERS, "content-encoding": encoding})
             for encoding, data, _, _ in cases
         ]
-        v2 = await client.post("/v2/models/ifnet/infer", content=bomb, headers={"content-encoding": "gzip"})
+        v2 = await client.post("/v2/models/object/infer", content=bomb, headers={"content-encoding": "gzip"})
         healthy = await client.post("/register", json=body())
     for (_, _, status, message), answer in zip(cases, answers, strict=True):
         assert answer.status_code == status and answer.json()["detail"].startswith(message), answer.text
@@ -527,7 +527,7 @@ async def test_every_answer_carries_a_request_id(serve, tiny_model):
             await client.post("/register", content=b"x" * 300_000, headers=JSON_HEADERS),  # 413 before routing
             await client.get("/nowhere"),  # 404
             await client.get("/health"),
-            await client.post("/v2/models/ifnet/infer", json={"inputs": []}),
+            await client.post("/v2/models/object/infer", json={"inputs": []}),
         ]
         kept = await client.get("/health", headers={"X-Request-ID": "trace-01.a:b_c"})
         replaced = [
@@ -551,7 +551,7 @@ async def test_api_key(serve, tiny_model):
         ]
         with_header = await client.post("/register", json=body(), headers={"X-API-Key": "s3cret"})
         with_bearer = await client.post("/register", json=body(), headers={"Authorization": "Bearer s3cret"})
-        v2_without = await client.post("/v2/models/ifnet/infer", json={"inputs": []})
+        v2_without = await client.post("/v2/models/object/infer", json={"inputs": []})
         health = await client.get("/health")
     assert without.status_code == wrong.status_code == v2_without.status_code == 401
     assert [response.status_code for response in near_misses] == [401, 401, 401]
@@ -577,7 +577,7 @@ async def test_ready_flips_after_warm_up(serve, tiny_model, gated_engine):
     from service.engine import OnnxEngine
 
     engine = gated_engine(OnnxEngine(tiny_model))
-    async with serve(settings_for(tiny_model, max_batch_size=3), engine=engine, wait_ready=False) as (app, client):
+    async with serve(settings_for(tiny_model, max_batch_size=3), engines=[engine], wait_ready=False) as (app, client):
         assert (await asyncio.to_thread(engine.entered.wait, 30)) is True  # warm-up is under way, held at the gate
         not_ready = await client.get("/ready")
         v2_not_ready = await client.get("/v2/health/ready")
@@ -588,7 +588,7 @@ async def test_ready_flips_after_warm_up(serve, tiny_model, gated_engine):
         ready = await client.get("/ready")
         v2_ready = await client.get("/v2/health/ready")
         early_response = await early
-    assert not_ready.status_code == 503 and not_ready.json() == {"ready": False, "detail": "warming up the model"}
+    assert not_ready.status_code == 503 and not_ready.json() == {"ready": False, "detail": "warming up the models"}
     assert v2_not_ready.status_code == 503 and v2_not_ready.json() == {"ready": False}
     assert live.status_code == 200 and live.json()["ready"] is False and live.json()["status"] == "ok"
     assert ready.status_code == 200 and ready.json()["ready"] is True and v2_ready.status_code == 200
@@ -607,14 +607,14 @@ async def test_a_failed_warm_up_fails_liveness_so_the_process_is_restarted(serve
             raise RuntimeError("out of memory")
 
     engine = FailingWarmUp(OnnxEngine(tiny_model))
-    async with serve(settings_for(tiny_model), engine=engine, wait_ready=False) as (app, client):
+    async with serve(settings_for(tiny_model), engines=[engine], wait_ready=False) as (app, client):
         for _ in range(200):  # the warm-up task fails at once; a hang guard, not a timing assertion
             if app.state.service.warmup_error:
                 break
             await asyncio.sleep(0.01)
         live, ready = await client.get("/health"), await client.get("/ready")
     assert live.status_code == 503 and live.json()["status"] == "failed"
-    assert "warm-up failed: out of memory" in live.json()["detail"]
+    assert "warm-up of model object failed: out of memory" in live.json()["detail"]
     assert ready.status_code == 503 and ready.json()["detail"] == live.json()["detail"]
 
 
@@ -689,7 +689,7 @@ async def test_v2_returns_only_the_outputs_asked_for(serve, tiny_model):
         "outputs": [{"name": "translation"}],
     }
     async with serve(settings_for(tiny_model)) as (app, client):
-        answer = (await client.post("/v2/models/ifnet/infer", json=request)).json()
+        answer = (await client.post("/v2/models/object/infer", json=request)).json()
     assert [(output["name"], output["shape"]) for output in answer["outputs"]] == [("translation", [1, 3])]
 
 
@@ -725,13 +725,13 @@ async def test_v2_metadata_and_health(serve, tiny_model):
         live = await client.get("/v2/health/live")
         ready = await client.get("/v2/health/ready")
         server = await client.get("/v2")
-        model = await client.get("/v2/models/ifnet")
-        model_ready = await client.get("/v2/models/ifnet/ready")
+        model = await client.get("/v2/models/object")
+        model_ready = await client.get("/v2/models/object/ready")
         missing = await client.get("/v2/models/pointnet")
     assert live.json() == {"live": True} and ready.json() == {"ready": True} and model_ready.status_code == 200
     assert server.json()["name"] == "ifnet-serve"
     metadata = model.json()
-    assert metadata["name"] == "ifnet" and metadata["versions"] == ["0" * 12]
+    assert metadata["name"] == "object" and metadata["versions"] == ["0" * 12]
     assert metadata["inputs"] == [
         {"name": "source", "datatype": "FP32", "shape": [-1, -1, 3]},
         {"name": "target", "datatype": "FP32", "shape": [-1, -1, 3]},
@@ -753,7 +753,7 @@ async def test_v2_infer_matches_register_for_each_pair_of_a_batch(serve, tiny_mo
         "inputs": [v2_tensor("source", sources), v2_tensor("target", targets)],
     }
     async with serve(settings_for(tiny_model)) as (app, client):
-        response = await client.post("/v2/models/ifnet/infer", json=request)
+        response = await client.post("/v2/models/object/infer", json=request)
         expected = [
             (
                 await client.post(
@@ -764,7 +764,7 @@ async def test_v2_infer_matches_register_for_each_pair_of_a_batch(serve, tiny_mo
         ]
     assert response.status_code == 200, response.text
     answer = response.json()
-    assert answer["id"] == "batch-1" and answer["model_name"] == "ifnet"
+    assert answer["id"] == "batch-1" and answer["model_name"] == "object"
     outputs = {output["name"]: output for output in answer["outputs"]}
     assert outputs["rotation"]["shape"] == [3, 3, 3] and outputs["translation"]["shape"] == [3, 3]
     rotations = np.asarray(outputs["rotation"]["data"]).reshape(3, 3, 3)
@@ -817,7 +817,7 @@ async def test_v2_infer_matches_register_for_each_pair_of_a_batch(serve, tiny_mo
 async def test_v2_errors_use_the_v2_error_format(serve, tiny_model, inputs, message):
     async with serve(settings_for(tiny_model, max_queue_size=8)) as (app, client):
         request = json.dumps({"inputs": inputs})
-        response = await client.post("/v2/models/ifnet/infer", content=request, headers=JSON_HEADERS)
+        response = await client.post("/v2/models/object/infer", content=request, headers=JSON_HEADERS)
     assert response.status_code == 422, response.text
     assert set(response.json()) == {"error"} and message in response.json()["error"]
 
@@ -832,7 +832,7 @@ async def test_v2_infer_on_the_shipped_model_matches_register(serve, shipped_mod
         ],
     }
     async with serve(settings_for(shipped_model, max_batch_size=1, warmup=False)) as (app, client):
-        v2 = await client.post("/v2/models/ifnet/infer", json=request)
+        v2 = await client.post("/v2/models/object/infer", json=request)
         reference = await client.post(
             "/register",
             json=body(

@@ -69,8 +69,8 @@ def metric_samples(text: str) -> dict[str, float]:
 
 async def test_32_concurrent_requests_are_batched_and_each_gets_its_own_answer(serve, tiny_model, gated_engine):
     engine = gated_engine(OnnxEngine(tiny_model))
-    async with serve(settings_for(tiny_model, max_queue_size=64, max_in_flight=32), engine=engine) as (app, client):
-        batcher = app.state.service.batcher
+    async with serve(settings_for(tiny_model, max_queue_size=64, max_in_flight=32), engines=[engine]) as (app, client):
+        batcher = app.state.service.models["object"].batcher
         requests = [asyncio.ensure_future(client.post("/register", json=payload(seed))) for seed in range(32)]
         # The first batch holds the worker at the gate; all other pairs queue up behind it.
         await wait_until(lambda: engine.at_gate + batcher.queue_depth == 32, "every pair at the gate or queued")
@@ -85,12 +85,13 @@ async def test_32_concurrent_requests_are_batched_and_each_gets_its_own_answer(s
 
     for seed, response in enumerate(responses):
         assert response.status_code == 200, response.text
-        reference = await register_clouds(*pair(seed), *pipeline_inputs(64), alone)
+        reference = await register_clouds(*pair(seed), *pipeline_inputs(64, alone))
         np.testing.assert_allclose(response.json()["transform"], reference.transform, rtol=1e-12, atol=1e-12)
     assert sum(engine.calls) == 32 and max(engine.calls) == 8
-    assert metrics["ifnet_batch_size_count{}"] == len(engine.calls)
-    assert metrics["ifnet_batch_size_bucket{le=1.0}"] < metrics["ifnet_batch_size_count{}"]  # batches of > 1
-    assert metrics["ifnet_batch_size_sum{}"] == 32
+    assert metrics["ifnet_batch_size_count{model=object}"] == len(engine.calls)
+    batches = metrics["ifnet_batch_size_count{model=object}"]
+    assert metrics["ifnet_batch_size_bucket{le=1.0,model=object}"] < batches  # batches of > 1
+    assert metrics["ifnet_batch_size_sum{model=object}"] == 32
     assert sorted(response.json()["timings_ms"]["batch_size"] for response in responses)[-8:] == [8] * 8
 
 
@@ -136,8 +137,8 @@ async def test_pairs_of_different_sizes_run_in_separate_calls(tiny_model, gated_
 
 async def test_a_full_queue_answers_429_with_retry_after(serve, tiny_model, gated_engine):
     engine = gated_engine(OnnxEngine(tiny_model))
-    async with serve(settings_for(tiny_model, max_queue_size=2), engine=engine) as (app, client):
-        batcher = app.state.service.batcher
+    async with serve(settings_for(tiny_model, max_queue_size=2), engines=[engine]) as (app, client):
+        batcher = app.state.service.models["object"].batcher
         running = asyncio.ensure_future(client.post("/register", json=payload(0)))
         await wait_until(lambda: engine.entered.is_set(), "first call at the gate")
         queued = [asyncio.ensure_future(client.post("/register", json=payload(seed))) for seed in (1, 2)]
@@ -154,7 +155,7 @@ async def test_a_full_queue_answers_429_with_retry_after(serve, tiny_model, gate
     assert "queue is full; retry after 2 s" in rejected.json()["detail"]
     assert health["queue_depth"] == 2 and health["in_flight"] == 3
     assert [response.status_code for response in accepted] == [200, 200, 200]
-    assert metrics["ifnet_batcher_rejections_total{reason=queue_full}"] == 1
+    assert metrics["ifnet_batcher_rejections_total{model=object,reason=queue_full}"] == 1
     assert metrics["ifnet_http_requests_total{method=POST,route=/register,status=429}"] == 1
 
 
@@ -171,15 +172,15 @@ def test_retry_after_is_the_batches_ahead_times_a_recent_call_over_the_model_cal
 
 async def test_requests_beyond_the_in_flight_limit_get_429_before_their_body_is_read(serve, tiny_model, gated_engine):
     engine = gated_engine(OnnxEngine(tiny_model))
-    async with serve(settings_for(tiny_model, max_in_flight=2), engine=engine) as (app, client):
+    async with serve(settings_for(tiny_model, max_in_flight=2), engines=[engine]) as (app, client):
         service = app.state.service
         running = asyncio.ensure_future(client.post("/register", json=payload(0)))
         await wait_until(lambda: engine.entered.is_set(), "first call at the gate")
         queued = asyncio.ensure_future(client.post("/register", json=payload(1)))
-        await wait_until(lambda: service.batcher.queue_depth == 1, "second pair queued")
+        await wait_until(lambda: service.models["object"].batcher.queue_depth == 1, "second pair queued")
         # Not JSON at all: a 429 rather than a 400 shows that the body was never read.
         rejected = await client.post("/register", content=b"{not json", headers={"content-type": "application/json"})
-        v2_rejected = await client.post(f"/v2/models/{service.model.name}/infer", content=b"{not json")
+        v2_rejected = await client.post("/v2/models/object/infer", content=b"{not json")
         engine.gate.set()
         accepted = await asyncio.gather(running, queued)
         after = await client.post("/register", json=payload(2))
@@ -194,8 +195,8 @@ async def test_requests_beyond_the_in_flight_limit_get_429_before_their_body_is_
 
 async def test_a_request_that_waits_too_long_gets_504_and_leaves_the_batch(serve, tiny_model, gated_engine):
     engine = gated_engine(OnnxEngine(tiny_model))
-    async with serve(settings_for(tiny_model, request_timeout_s=1.0), engine=engine) as (app, client):
-        batcher = app.state.service.batcher
+    async with serve(settings_for(tiny_model, request_timeout_s=1.0), engines=[engine]) as (app, client):
+        batcher = app.state.service.models["object"].batcher
         running = asyncio.ensure_future(client.post("/register", json=payload(0)))
         await wait_until(lambda: engine.entered.is_set(), "first call at the gate")
         waiting = await client.post("/register", json=payload(1))  # queued behind the gate, times out
@@ -213,8 +214,8 @@ async def test_a_request_that_waits_too_long_gets_504_and_leaves_the_batch(serve
 
 async def test_a_client_that_disconnects_does_not_poison_the_batch(serve, tiny_model, gated_engine):
     engine = gated_engine(OnnxEngine(tiny_model))
-    async with serve(settings_for(tiny_model), engine=engine) as (app, client):
-        batcher = app.state.service.batcher
+    async with serve(settings_for(tiny_model), engines=[engine]) as (app, client):
+        batcher = app.state.service.models["object"].batcher
         running = asyncio.ensure_future(client.post("/register", json=payload(0)))
         await wait_until(lambda: engine.entered.is_set(), "first call at the gate")
 
@@ -247,7 +248,7 @@ async def test_a_failing_model_call_is_a_500_and_the_worker_carries_on(serve, ti
                 raise RuntimeError("simulated ORT failure")
             return self.engine.run(source, target)
 
-    async with serve(settings_for(tiny_model), engine=FlakyEngine()) as (app, client):
+    async with serve(settings_for(tiny_model), engines=[FlakyEngine()]) as (app, client):
         failed = await client.post("/register", json=payload(0))
         recovered = await client.post("/register", json=payload(0))
     assert failed.status_code == 500 and "simulated ORT failure" in failed.json()["detail"]

@@ -106,7 +106,7 @@ def test_a_lone_call_runs_on_every_thread_and_calls_beside_it_on_their_share(tin
 
 def test_metadata_is_read(tiny_model):
     info = OnnxEngine(tiny_model).info
-    assert (info.name, info.preset, info.network_points, info.opset) == ("ifnet", "tiny-test", 64, "17")
+    assert (info.name, info.preset, info.network_points, info.opset) == ("object", "tiny-test", 64, "17")  # its file
     assert info.min_network_points == 16
     assert info.version == "0" * 12 and info.config == {"num_points": 64} and len(info.file_sha256) == 64
     assert [spec.name for spec in info.inputs] == ["source", "target"]
@@ -117,7 +117,7 @@ def test_missing_metadata_falls_back_to_768_points_with_a_warning(tmp_path, capl
     path = tiny_model_builder(tmp_path / "bare.onnx", with_metadata=False)
     with caplog.at_level(logging.WARNING, logger="service.engine"):
         info = OnnxEngine(path).info
-    assert info.network_points == 768 and info.name == "ifnet" and info.weights_sha256 is None
+    assert info.network_points == 768 and info.name == "bare" and info.weights_sha256 is None
     assert info.min_network_points == 768, "without the record only the native count is known to run"
     assert info.version == info.file_sha256[:12]
     assert "no `num_points` metadata" in caplog.text and "no `min_points` metadata" in caplog.text
@@ -183,7 +183,7 @@ def test_settings_come_from_the_environment(monkeypatch):
     assert (settings.max_batch_size, settings.max_batch_delay_ms, settings.threads) == (6, 2.5, 3)
     assert settings.model_calls == 2
     assert settings.api_key.get_secret_value() == "k"
-    assert settings.model_path == REPO / "service" / "models" / "ifnet.onnx"
+    assert settings.model_repository == REPO / "service" / "models" and settings.model_path is None
     assert Settings(max_batch_size=2).max_batch_size == 2  # explicit values win over the environment
     monkeypatch.setenv("IFNET_API_KEY", "")
     assert Settings().api_key is None  # an empty key (an absent optional secret) means no key

@@ -181,14 +181,14 @@ def payload(seed: int, count: int = 80, **options) -> bytes:
 async def test_a_client_leaving_while_its_batch_runs_leaves_no_stuck_work(serve, tiny_model):
     engine = StepEngine(OnnxEngine(tiny_model))
     settings = Settings(model_path=tiny_model, warmup=False, max_batch_size=4, model_calls=1)  # one batch at a time
-    async with serve(settings, engine=engine) as (app, client):
+    async with serve(settings, engines=[engine]) as (app, client):
         state = app.state.service
         blocker = asyncio.ensure_future(client.post("/register", content=payload(0), headers=JSON))
         await wait_until(lambda: engine.calls == [1], "first call running")
 
         leaving, gone, sent = vanishing_request(app, payload(1))
         staying = asyncio.ensure_future(client.post("/register", content=payload(2), headers=JSON))
-        await wait_until(lambda: state.batcher.queue_depth == 2, "two pairs queued")
+        await wait_until(lambda: state.models["object"].batcher.queue_depth == 2, "two pairs queued")
         engine.gates[0].set()
         await wait_until(lambda: engine.calls == [1, 2], "both pairs in the running batch")
         gone.set()  # the client goes away while its pair is inside the model

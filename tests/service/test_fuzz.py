@@ -116,7 +116,7 @@ def test_uploaded_files_never_cause_a_server_error(client, source, prefix):
 @given(inputs=json_values, parameters=json_values)
 def test_v2_bodies_never_cause_a_server_error(client, inputs, parameters):
     response = client.post(
-        "/v2/models/ifnet/infer",
+        "/v2/models/object/infer",
         content=dumps({"inputs": inputs, "parameters": parameters}),
         headers={"content-type": "application/json"},
     )

@@ -61,7 +61,7 @@ async def test_made_up_methods_share_one_metrics_label(serve, tiny_model):
 )
 async def test_v2_tensors_must_hold_json_numbers_matching_their_shape(serve, tiny_model, changes, problem):
     async with serve(Settings(model_path=tiny_model)) as (app, client):
-        answer = await client.post("/v2/models/ifnet/infer", json=v2_body(SOURCE, TARGET, **changes))
+        answer = await client.post("/v2/models/object/infer", json=v2_body(SOURCE, TARGET, **changes))
     assert answer.status_code == 422, answer.text
     assert problem in answer.json()["error"]
 
@@ -80,7 +80,7 @@ async def test_init_must_be_numbers_on_both_apis(serve, tiny_model, init):
         assert answer.status_code == 422, answer.text
         assert "init" in answer.json()["detail"] and "not strings or true/false" in answer.json()["detail"]
         v2 = {**v2_body(SOURCE, TARGET), "parameters": {"init": init}}
-        answer = await client.post("/v2/models/ifnet/infer", json=v2)
+        answer = await client.post("/v2/models/object/infer", json=v2)
         assert answer.status_code == 422, answer.text
 
 
@@ -101,7 +101,7 @@ async def test_a_body_slower_than_the_deadline_gets_408_and_a_slow_service_504(s
 
     engine = gated_engine(OnnxEngine(tiny_model, 1), gated=False)
     settings = Settings(model_path=tiny_model, request_timeout_s=0.5, warmup=False)
-    async with serve(settings, engine=engine) as (app, client):
+    async with serve(settings, engines=[engine]) as (app, client):
         answer = await client.post("/register", content=trickle(), headers={"Content-Type": "application/json"})
         assert answer.status_code == 408, answer.text
         assert answer.json()["errors"][0]["field"] == "body"
@@ -112,7 +112,7 @@ async def test_a_body_slower_than_the_deadline_gets_408_and_a_slow_service_504(s
     assert answer.status_code == 504, answer.text
 
 
-@pytest.mark.parametrize("path", ["/metrics", "/docs", "/openapi.json", "/v2/models/ifnet", "/v2"])
+@pytest.mark.parametrize("path", ["/metrics", "/docs", "/openapi.json", "/v2/models/object", "/v2"])
 async def test_the_api_key_can_guard_metadata_too(serve, tiny_model, path):
     key = "correct-horse"
     async with serve(Settings(model_path=tiny_model, api_key=key)) as (app, client):
@@ -123,7 +123,7 @@ async def test_the_api_key_can_guard_metadata_too(serve, tiny_model, path):
         assert "API key" in (refused.json().get("error") or refused.json()["detail"])
         assert (await client.get(path, headers={"X-API-Key": key})).status_code == 200
         assert (await client.get(path, headers={"Authorization": f"Bearer {key}"})).status_code == 200
-        for probe in ("/health", "/ready", "/v2/health/live", "/v2/health/ready", "/v2/models/ifnet/ready"):
+        for probe in ("/health", "/ready", "/v2/health/live", "/v2/health/ready", "/v2/models/object/ready"):
             assert (await client.get(probe)).status_code == 200, probe
         assert (await client.post("/register", json=PAIR, headers={"X-API-Key": key})).status_code == 200
 

@@ -99,7 +99,7 @@ def test_the_command_line_client_sends_its_options(tmp_path, monkeypatch, capsys
         sent.update(options)
         return {"transform": np.eye(4).tolist(), "fitness": 1.0, "inlier_rmse": 0.0, "fitness_threshold": 0.1,
                 "verified": False, "reason": "low overlap", "stage": "features",
-                "model": {"name": "ifnet", "version": "0" * 12}, "timings_ms": {"total_ms": 1.0}}  # fmt: skip
+                "model": {"name": "indoor", "version": "0" * 12}, "timings_ms": {"total_ms": 1.0}}  # fmt: skip
 
     monkeypatch.setattr(client.RegistrationClient, "register_files", register_files)
     argv = [
@@ -115,6 +115,8 @@ def test_the_command_line_client_sends_its_options(tmp_path, monkeypatch, capsys
         "3",
         "--method",
         "global",
+        "--model",
+        "indoor",
     ]
     assert client.main(argv) == 0
     assert sent == {
@@ -123,11 +125,12 @@ def test_the_command_line_client_sends_its_options(tmp_path, monkeypatch, capsys
         "network_points": 512,
         "sampling": "random",
         "seed": 3,
+        "model": "indoor",
         "method": "global",
     }
     printed = capsys.readouterr().out
     assert printed.startswith("transform (source -> target):")
-    assert "NOT verified: low overlap  (stage features)" in printed
+    assert "NOT verified: low overlap  (stage features)" in printed and "model indoor 000000000000" in printed
 
 
 def test_sigterm_finishes_in_flight_requests_then_exits(tmp_path, tiny_model):
@@ -156,7 +159,7 @@ def test_sigterm_finishes_in_flight_requests_then_exits(tmp_path, tiny_model):
     # uvicorn re-raises the signal it caught once shutdown is complete, so the parent sees SIGTERM.
     assert exit_code in (0, -signal.SIGTERM)
     text = log.read_text()
-    assert "batcher drained" in text and "Finished server process" in text
+    assert "batchers drained" in text and "Finished server process" in text
 
 
 def test_startup_fails_clearly_without_a_model(tmp_path):

@@ -128,8 +128,8 @@ def test_the_whole_pipeline_recovers_any_rigid_motion(
         seen.append(1)
         return Prediction(*kabsch(source_n.astype(np.float64), target_n.astype(np.float64)))
 
-    params = pipeline_inputs(network_points, sampling=sampling, seed=case["seed"] % 1000, init=init)
-    result = asyncio.run(register_clouds(source, target, *params, exact_model, run_blocking=_run_inline))
+    params = pipeline_inputs(network_points, exact_model, sampling=sampling, seed=case["seed"] % 1000, init=init)
+    result = asyncio.run(register_clouds(source, target, *params, run_blocking=_run_inline))
 
     assert seen == [1]
     # float32 network input: about 1e-7 relative per coordinate, amplified a little by the fit.
@@ -249,10 +249,10 @@ def test_accepted_clouds_reach_the_model_normalised_and_junk_is_invalid_input(so
             assert np.linalg.norm(cloud, axis=1).max() <= RADIUS * (1.0 + 1e-5)
         return Prediction(np.eye(3), np.zeros(3))
 
-    params = pipeline_inputs(network_points, min_points=8)
+    params = pipeline_inputs(network_points, contract_checking_model, min_points=8)
     try:
         clouds = as_points(source, "source"), as_points(target, "target")
-        result = asyncio.run(register_clouds(*clouds, *params, contract_checking_model, run_blocking=_run_inline))
+        result = asyncio.run(register_clouds(*clouds, *params, run_blocking=_run_inline))
     except InvalidInput as error:
         assert error.field in ("source", "target") and error.problem
         return
@@ -264,10 +264,10 @@ def test_accepted_clouds_reach_the_model_normalised_and_junk_is_invalid_input(so
 def test_the_smallest_accepted_cloud_registers(count):
     """A deterministic anchor for the junk test: at min_points, a plain cloud is accepted."""
     cloud = np.random.default_rng(count).normal(size=(count, 3))
-    params = pipeline_inputs(64, min_points=8)
 
     async def identity(source_n, target_n):
         return Prediction(np.eye(3), np.zeros(3))
 
-    result = asyncio.run(register_clouds(cloud, cloud, *params, identity, run_blocking=_run_inline))
+    params = pipeline_inputs(64, identity, min_points=8)
+    result = asyncio.run(register_clouds(cloud, cloud, *params, run_blocking=_run_inline))
     assert result.fitness == 1.0 and result.points.source.upsampled

@@ -56,8 +56,8 @@ async def oracle(source: np.ndarray, target: np.ndarray) -> Prediction:
     return Prediction(*kabsch(source.astype(np.float64), target.astype(np.float64)))
 
 
-def register(source, target, params, predict=oracle):
-    return asyncio.run(register_clouds(source, target, *params, predict))
+def register(source, target, network_points, predict=oracle, **options):
+    return asyncio.run(register_clouds(source, target, *pipeline_inputs(network_points, predict, **options)))
 
 
 def radius(points: np.ndarray) -> float:
@@ -76,7 +76,7 @@ def radius(points: np.ndarray) -> float:
 def test_known_transform_is_recovered_on_real_scans(real_scans, scan, sampling):
     source = real_scans[scan]
     target = apply_transform(source, TRUE_ROTATION, TRUE_TRANSLATION)
-    result = register(source, target, pipeline_inputs(768, sampling=sampling, seed=3, init=INIT))
+    result = register(source, target, 768, sampling=sampling, seed=3, init=INIT)
 
     assert rotation_angle_deg(result.rotation, TRUE_ROTATION) < ROTATION_TOLERANCE_DEG
     assert np.linalg.norm(result.translation - TRUE_TRANSLATION) < TRANSLATION_TOLERANCE * radius(source)
@@ -92,7 +92,7 @@ def test_without_init_and_with_other_network_sizes(real_scans):
     source = real_scans["pcl_bunny_view4"]
     target = apply_transform(source, TRUE_ROTATION, TRUE_TRANSLATION)
     for count in (64, 1024):
-        result = register(source, target, pipeline_inputs(count))
+        result = register(source, target, count)
         assert result.points.source.network_points == count
         assert rotation_angle_deg(result.rotation, TRUE_ROTATION) < ROTATION_TOLERANCE_DEG
         assert np.linalg.norm(result.translation - TRUE_TRANSLATION) < TRANSLATION_TOLERANCE * radius(source)
@@ -102,8 +102,8 @@ def test_the_answer_does_not_depend_on_units(real_scans):
     """Millimetres instead of metres: same rotation, translation 1000 times larger."""
     source = real_scans["pcl_bunny_view0"]
     target = apply_transform(source, TRUE_ROTATION, TRUE_TRANSLATION)
-    metres = register(source, target, pipeline_inputs(256))
-    millimetres = register(source * 1000.0, target * 1000.0, pipeline_inputs(256))
+    metres = register(source, target, 256)
+    millimetres = register(source * 1000.0, target * 1000.0, 256)
     np.testing.assert_allclose(millimetres.rotation, metres.rotation, atol=1e-6)
     np.testing.assert_allclose(millimetres.translation, metres.translation * 1000.0, rtol=1e-6, atol=1e-6)
     assert millimetres.fitness_threshold == pytest.approx(metres.fitness_threshold * 1000.0)
@@ -121,8 +121,7 @@ def test_refinement_corrects_a_network_error_in_user_units(real_scans):
         exact = await oracle(source_n, target_n)
         return Prediction(error_rotation @ exact.rotation, exact.translation + [0.03, 0.0, 0.0])
 
-    params = pipeline_inputs(768, sampling="random", refine=RefineOptions())
-    result = register(source, target, params, predict=three_degrees_off)
+    result = register(source, target, 768, three_degrees_off, sampling="random", refine=RefineOptions())
     network_error = rotation_angle_deg(from_matrix(result.refinement.network_transform)[0], TRUE_ROTATION)
     assert 2.9 < network_error < 3.1
     assert rotation_angle_deg(result.rotation, TRUE_ROTATION) < 0.01
@@ -167,7 +166,7 @@ def test_non_finite_model_output_is_reported(real_scans):
         return Prediction(np.full((3, 3), np.nan), np.zeros(3))
 
     with pytest.raises(RegistrationFailed, match="non-finite"):
-        register(source, source, pipeline_inputs(64), predict=broken)
+        register(source, source, 64, predict=broken)
 
 
 # ---------------------------------------------------------------- input checks
@@ -213,16 +212,15 @@ def test_as_points_accepts_integers_and_arrays():
     ],
 )
 def test_clouds_that_cannot_be_registered(points, message):
-    params = pipeline_inputs(64, min_points=32, max_cloud_points=500)
     with pytest.raises(InvalidInput, match=message) as caught:
-        register(points, cloud(100), params)
+        register(points, cloud(100), 64, min_points=32, max_cloud_points=500)
     assert caught.value.field == "source"
 
 
 def test_a_planar_cloud_is_accepted():
     plane = np.c_[cloud(100)[:, :2], np.zeros(100)]
     assert degeneracy(plane) is None
-    assert register(plane, plane, pipeline_inputs(64)).fitness == 1.0
+    assert register(plane, plane, 64).fitness == 1.0
 
 
 def test_init_must_be_a_rigid_transform():
@@ -253,9 +251,8 @@ def test_upsampled_only_when_a_cloud_has_fewer_distinct_points_than_the_network_
     async def identity(source: np.ndarray, target: np.ndarray) -> Prediction:
         return Prediction(np.eye(3), np.zeros(3))
 
-    params = pipeline_inputs(64, min_points=8)
-    exact = register(cloud, cloud, params, identity)
-    short = register(cloud[:63], cloud, params, identity)
+    exact = register(cloud, cloud, 64, identity, min_points=8)
+    short = register(cloud[:63], cloud, 64, identity, min_points=8)
     assert (exact.points.source.upsampled, exact.points.source.network_points) == (False, 64)
     assert (short.points.source.upsampled, short.points.source.network_points) == (True, 64)
     assert short.points.target.upsampled is False

@@ -39,7 +39,7 @@ def schema_of_test_app():
     atexit.register(shutil.rmtree, model_dir, ignore_errors=True)
     app = create_app(
         Settings(
-            model_path=build_tiny_model(model_dir / "tiny.onnx"),
+            model_path=build_tiny_model(model_dir / "object.onnx"),
             min_points=8,
             max_network_points=256,
             max_body_bytes=200_000,
@@ -62,6 +62,7 @@ def test_the_schema_covers_every_route():
         ("GET", "/v2"),
         ("GET", "/v2/health/live"),
         ("GET", "/v2/health/ready"),
+        ("GET", "/v2/models"),
         ("GET", "/v2/models/{model_name}"),
         ("GET", "/v2/models/{model_name}/ready"),
         ("POST", "/v2/models/{model_name}/infer"),

@@ -212,7 +212,7 @@ def v2_body(source: np.ndarray, target: np.ndarray) -> dict:
     "path, payload",
     [
         ("/register", {"source": SOURCE.tolist(), "target": TARGET.tolist()}),
-        ("/v2/models/ifnet/infer", v2_body(SOURCE, TARGET)),
+        ("/v2/models/object/infer", v2_body(SOURCE, TARGET)),
     ],
 )
 async def test_a_request_without_the_key_is_refused_before_its_body_is_read(serve, tiny_model, path, payload):
@@ -236,7 +236,7 @@ async def test_a_declared_length_over_the_limit_is_refused_before_reading(serve,
     async with serve(Settings(model_path=tiny_model, max_body_bytes=10_000)) as (app, client):
         status, answer, pulled = await call_asgi(app, asgi_scope("/register", headers), [b"x" * 10_001])
         v2_status, v2_answer, v2_pulled = await call_asgi(
-            app, asgi_scope("/v2/models/ifnet/infer", headers), [b"x" * 10_001]
+            app, asgi_scope("/v2/models/object/infer", headers), [b"x" * 10_001]
         )
     assert status == v2_status == 413
     assert pulled == v2_pulled == []

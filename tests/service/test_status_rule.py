@@ -36,7 +36,7 @@ async def test_one_request_of_each_kind_gets_its_status(serve, tiny_model, gated
     gated = gated_engine(FailingEngine(OnnxEngine(tiny_model, 1)), gated=False)
     settings = Settings(model_path=tiny_model, max_body_bytes=64 * 1024, request_timeout_s=1.0, max_in_flight=1)
     statuses = {}
-    async with serve(settings, engine=gated) as (app, client):
+    async with serve(settings, engines=[gated]) as (app, client):
 
         async def slow_body():
             yield b'{"source": '

@@ -72,8 +72,8 @@ async def test_auto_finds_a_large_rotation_the_network_alone_gets_wrong(serve, s
     assert rotation_error(network, truth) > 10 and network["verified"] is False and network["reason"]
     assert rotation_error(auto, truth) < 1.0, auto
     assert auto["verified"] is True and auto["stage"] in ("multistart", "features")
-    assert 'ifnet_answers_total{stage="ifnet",verified="false"} 1.0' in metrics
-    assert f'ifnet_answers_total{{stage="{auto["stage"]}",verified="true"}} 1.0' in metrics
+    assert 'ifnet_answers_total{model="object",stage="ifnet",verified="false"} 1.0' in metrics
+    assert f'ifnet_answers_total{{model="object",stage="{auto["stage"]}",verified="true"}} 1.0' in metrics
 
 
 @pytest.mark.slow
@@ -128,7 +128,6 @@ def test_an_answer_another_answer_contradicts_is_not_verified():
     async def flipped(source_n, target_n):
         return Prediction(flip @ rotation, np.zeros(3))  # each cloud is centred on its centroid, the box's centre
 
-    options, settings = pipeline_inputs(768, refine={}, method="ifnet")
-    answer = asyncio.run(register_clouds(source, target, options, settings, flipped))
+    answer = asyncio.run(register_clouds(source, target, *pipeline_inputs(768, flipped, refine={}, method="ifnet")))
     assert answer.verified is False and answer.reason.startswith("ambiguous"), answer.reason
     assert answer.stage in ("ifnet", "features")  # whichever fits best, flagged

@@ -32,7 +32,7 @@ def neighbourhood_mean(points: np.ndarray, k: int) -> np.ndarray:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--model", type=Path, default=Path("service/models/ifnet.onnx"))
+    parser.add_argument("--model", type=Path, default=Path("service/models/object.onnx"))
     parser.add_argument("--k", type=int, nargs="+", default=[1, 4, 8, 16, 32])
     parser.add_argument("--pairs", type=int, default=100)
     parser.add_argument("--seed", type=int, default=1234, help="the evaluation's pair seed")

@@ -11,7 +11,7 @@ model, ICP with `refine`), once per model:
 
     python -m export --weights model/weights/ifnet-fast-clean.pt --output /tmp/ifnet-clean.onnx
     python docs/training/experiments/real_scan_pairs.py \
-        --models service/models/ifnet.onnx /tmp/ifnet-clean.onnx --motions 5
+        --models service/models/object.onnx /tmp/ifnet-clean.onnx --motions 5
 
 Prints, per model, scan and kind of pair, the median and worst rotation error (degrees) of the
 network alone and after refinement, and how many pairs are more than 5 degrees off; writes every
@@ -38,7 +38,7 @@ from model.geometry import (
 )
 from service.batcher import Prediction
 from service.engine import OnnxEngine
-from service.registration import register_clouds
+from service.registration import Network, register_clouds
 from service.schemas import RefineOptions, RegistrationOptions
 from service.settings import Settings
 
@@ -65,10 +65,11 @@ def rotation_errors(engine: OnnxEngine, pairs) -> tuple[np.ndarray, np.ndarray]:
         rotation, translation = engine.run(source[None], target[None])
         return Prediction(rotation[0], translation[0])
 
-    options = RegistrationOptions(network_points=engine.info.network_points, refine=RefineOptions())
+    options = RegistrationOptions(refine=RefineOptions())
+    networks = [Network(engine.info.name, engine.info.network_points, predict)]
     alone, refined = [], []
     for source, target, true_rotation in pairs:
-        result = asyncio.run(register_clouds(source, target, options, Settings(), predict, run_blocking=_inline))
+        result = asyncio.run(register_clouds(source, target, options, Settings(), networks, run_blocking=_inline))
         alone.append(float(rotation_angle_deg(from_matrix(result.refinement.network_transform)[0], true_rotation)))
         refined.append(float(rotation_angle_deg(result.rotation, true_rotation)))
     return np.array(alone), np.array(refined)
@@ -80,7 +81,7 @@ async def _inline(function, *args):
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--models", type=Path, nargs="+", default=[Path("service/models/ifnet.onnx")])
+    parser.add_argument("--models", type=Path, nargs="+", default=[Path("service/models/object.onnx")])
     parser.add_argument("--motions", type=int, default=5, help="random motions per scan and kind of pair")
     parser.add_argument("--overlap", type=float, default=0.75)
     parser.add_argument("--max-points", type=int, default=40_000, help="larger scans are subsampled first")
