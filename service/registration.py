@@ -301,7 +301,7 @@ def _finish_multistart(
     candidates = [_checked(prepared, rotation, translation, refine_options) for _, rotation, translation in best]
     timings = _model_timings(predictions) | {"postprocess_ms": (time.perf_counter() - started) * 1000.0}
     first, *others = [_result(prepared, candidate, "multistart", model, options, timings) for candidate in candidates]
-    free = {"queue_ms": 0.0, "inference_ms": 0.0, "batch_size": 0, "postprocess_ms": 0.0}
+    free = first.timings_ms | {"queue_ms": 0.0, "inference_ms": 0.0, "batch_size": 0, "postprocess_ms": 0.0}
     return [first, *(dataclasses.replace(other, timings_ms=dict(free)) for other in others)]  # paid once
 
 

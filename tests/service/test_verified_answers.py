@@ -131,3 +131,25 @@ def test_an_answer_another_answer_contradicts_is_not_verified():
     answer = asyncio.run(register_clouds(source, target, *pipeline_inputs(768, flipped, refine={}, method="ifnet")))
     assert answer.verified is False and answer.reason.startswith("ambiguous"), answer.reason
     assert answer.stage in ("ifnet", "features")  # whichever fits best, flagged
+
+
+def test_every_rotated_start_the_global_path_keeps_can_be_the_answer():
+    """Whichever refined start wins, its timings make a valid response (a later start once lacked
+    the preprocessing time and its answer failed the response schema)."""
+    from conftest import pipeline_inputs
+
+    from service.batcher import Prediction
+    from service.registration import _finish_multistart, _prepare
+    from service.schemas import ModelDescription, RegisterResponse
+
+    rng = np.random.default_rng(6)
+    source = box_surface(1500, rng)
+    options, settings, _ = pipeline_inputs(256, None, refine={}, method="global")
+    prepared = _prepare(source, source @ euler_to_matrix([30.0, 0.0, 0.0]).T, 256, options, settings)
+    predictions = [Prediction(np.eye(3), np.zeros(3), inference_ms=5.0) for _ in range(24)]
+    results = _finish_multistart(prepared, predictions, "object", options)
+    assert len(results) > 1
+    model = ModelDescription.model_construct()
+    for result in results:
+        assert result.timings_ms.keys() == results[0].timings_ms.keys()
+        RegisterResponse.from_result(result, model, read_ms=1.0, total_ms=2.0)
