@@ -43,9 +43,18 @@ def provenance(record: dict) -> list[str]:
     return [f"`{record['command']}` ({record['when']}, {record['cpus']} CPUs, model `{model.get('version')}`)", ""]
 
 
-def compare(record: dict) -> list[str]:
+PAPER_COLUMNS = {"mae_r_deg": "MAE(R) deg", "rmse_r_deg": "RMSE(R) deg", "mae_t": "MAE(t)", "rmse_t": "RMSE(t)"}
+
+
+def scenes(record: dict) -> list[str]:
+    return compare(record, "Scene models: the paper's scene protocols and real pairs", paper=True)
+
+
+def compare(
+    record: dict, title: str = "Registration: network, service and peers on the same pairs", paper: bool = False
+) -> list[str]:
     right = record["right"]
-    lines = ["## Registration: network, service and peers on the same pairs", "", *provenance(record)]
+    lines = [f"## {title}", "", *provenance(record)]
     lines += [f"right: rotation error <= {right['rotation_deg']} deg and translation error <= "]
     lines[-1] += f"{right['translation_share_of_extent']} x extent; service rows' options: {cell(record['requests'])}"
     lines.append("")
@@ -54,11 +63,13 @@ def compare(record: dict) -> list[str]:
         peers = list(dict.fromkeys(peer for s in summary.values() for peer in s["ratio_to"]))
         verified = any(s["verified"] is not None for s in summary.values())
         header = ["method", "pairs", "recall", "median rotation error (deg)", "median translation error"]
+        header += list(PAPER_COLUMNS.values()) if paper else []
         header += ["verified", "wrong and verified"] if verified else []
         header += [f"time / {peer}" for peer in peers]
         rows = []
         for method, s in summary.items():
             row = [method, s["pairs"], s["recall"], s["median_rotation_deg"], s["median_translation"]]
+            row += [s.get(key) for key in PAPER_COLUMNS] if paper else []
             row += [s["verified"], s["wrong_verified"]] if verified else []
             rows.append(row + [f"{s['ratio_to'][peer]:.2f}x" if peer in s["ratio_to"] else None for peer in peers])
         points = sorted({n for pair in data["pairs"] for n in pair["points"]})
@@ -118,7 +129,7 @@ def overload(record: dict) -> list[str]:
     return lines + table(["measure", "value"], rows)
 
 
-RENDER = {"compare": compare, "scaling": scaling, "overload": overload}
+RENDER = {"compare": compare, "scenes": scenes, "scaling": scaling, "overload": overload}
 
 
 def main() -> int:

@@ -51,6 +51,8 @@ def training_objective(args: dict) -> str:
         objective += f", global loss weighted {args['global_weight']:g}"
     if args.get("teacher"):
         objective += f", plus teacher consistency with {args['teacher']} (weight {args['teacher_weight']:g})"
+        if args.get("domain", "object") != "object":
+            objective += ", its estimate on the shared-point pair polished by GICP, kept where shared points coincide"
     return objective
 
 

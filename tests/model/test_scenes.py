@@ -125,3 +125,18 @@ def test_no_scene_is_both_trained_on_and_held_out(domain):
     train_scenes, test_scenes = ({scene_of(name) for name in scans} for scans in (train, test))
     assert train_scenes and not train_scenes & test_scenes
     assert test_scenes == set(HELD_OUT_SCENES[domain])  # every held-out scene exists in the data
+
+
+@pytest.mark.parametrize("domain", sorted(PROTOCOLS))
+def test_the_shipped_scene_model_is_the_export_of_its_recorded_weights(domain):
+    import json
+
+    onnx = pytest.importorskip("onnx")
+    from model.artifacts import DEFAULT_WEIGHTS, SERVED_MODEL, file_sha256
+
+    weights = DEFAULT_WEIGHTS.with_name(f"ifnet-{domain}.pt")
+    record = json.loads(weights.with_suffix(".json").read_text())
+    assert record["sha256"] == file_sha256(weights)
+    assert domain in record["training"]["data"] and "no shared point" in record["training"]["pair_noise"]
+    metadata = {p.key: p.value for p in onnx.load(SERVED_MODEL.with_name(f"{domain}.onnx")).metadata_props}
+    assert metadata["weights_sha256"] == record["sha256"]
