@@ -58,7 +58,8 @@ FEATURE_MAX_POINTS = 8_000
 # of one of them; the network's answers from the best few (by fitness) are refined and checked.
 STARTS = Rotation.create_group("O").as_matrix()
 STARTS_REFINED = 3
-AGREEMENT_DEG = 5.0  # two verified answers further apart than this contradict each other
+AGREEMENT_DEG = 5.0  # two fitting answers further apart than this contradict each other
+RIVAL_FITNESS_MARGIN = 0.05  # an unverified answer fitting within this of a verified one also contradicts it
 Stage = Literal["ifnet", "multistart", "features"]
 
 T = TypeVar("T")
@@ -372,11 +373,13 @@ async def register_clouds(
 
 
 def _unless_contradicted(best: RegistrationResult, answers: list[RegistrationResult]) -> RegistrationResult:
-    """A verified answer that another verified answer contradicts is not verified: both fit, so the
-    clouds (a symmetric object, a repetitive scene) do not tell which is right."""
+    """A verified answer that another answer contradicts is not verified when the other is verified
+    too or fits about as well (it may have failed the check only by sliding, as on a near-symmetric
+    shape): both fit, so the clouds (a symmetric object, a repetitive scene) do not tell which is right."""
     if not best.verified:
         return best
-    apart = max(float(rotation_angle_deg(best.rotation, other.rotation)) for other in answers if other.verified)
+    rivals = [other for other in answers if other.verified or other.fitness >= best.fitness - RIVAL_FITNESS_MARGIN]
+    apart = max(float(rotation_angle_deg(best.rotation, other.rotation)) for other in rivals)
     if apart <= AGREEMENT_DEG:
         return best
     reason = f"ambiguous: another answer {apart:.0f} degrees away fits as well (a symmetric shape?)"

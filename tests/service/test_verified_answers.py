@@ -153,3 +153,29 @@ def test_every_rotated_start_the_global_path_keeps_can_be_the_answer():
     for result in results:
         assert result.timings_ms.keys() == results[0].timings_ms.keys()
         RegisterResponse.from_result(result, model, read_ms=1.0, total_ms=2.0)
+
+
+def test_an_unverified_answer_that_fits_as_well_also_contradicts():
+    """A near-symmetric shape: one answer slides (unverified), another 30 degrees away passes the
+    check; the two fit about as well, so the second is not verified either. A poorer fit does not
+    contradict."""
+    import dataclasses
+
+    from conftest import pipeline_inputs
+
+    from service.batcher import Prediction
+    from service.registration import _finish_multistart, _prepare, _unless_contradicted
+
+    rng = np.random.default_rng(7)
+    source = box_surface(1500, rng)
+    options, settings, _ = pipeline_inputs(256, None, refine={}, method="global")
+    prepared = _prepare(source, source, 256, options, settings)
+    result = _finish_multistart(prepared, [Prediction(np.eye(3), np.zeros(3))] * 24, "object", options)[0]
+    answer = dataclasses.replace(result, rotation=np.eye(3), verified=True, reason=None, fitness=0.72)
+    turned = euler_to_matrix([30.0, 0.0, 0.0])
+    sliding = dataclasses.replace(result, rotation=turned, verified=False, reason="slides", fitness=0.70)
+    poorer = dataclasses.replace(sliding, fitness=0.40)
+
+    flagged = _unless_contradicted(answer, [answer, sliding])
+    assert flagged.verified is False and flagged.reason.startswith("ambiguous")
+    assert _unless_contradicted(answer, [answer, poorer]).verified is True
