@@ -113,13 +113,16 @@ def make_scan_pair(scan: np.ndarray, protocol: ScanProtocol, rng: np.random.Gene
     }
 
 
+def at_most(cloud: np.ndarray, count: int) -> np.ndarray:
+    """The cloud farthest-point sampled down to `count` points, or whole if it has no more."""
+    return cloud[farthest_point_sample(cloud, count)] if len(cloud) > count else cloud
+
+
 def teacher_view(pair: dict, points: int, protocol: ScanProtocol) -> tuple[np.ndarray, np.ndarray]:
     """The pair as the paper builds it, at the network's point count: one sample of the scan, moved,
     and both copies cropped alike, so that the clouds share their points where they overlap."""
     keep = round(points * protocol.sample_points / protocol.crop_points) if protocol.crop_points else points
-    shared = pair["shared"]
-    if len(shared) > keep:
-        shared = shared[farthest_point_sample(shared, keep)]
+    shared = at_most(pair["shared"], keep)
     source, target = shared, apply_transform(shared, pair["rotation"], pair["translation"])
     if pair["anchor"] is not None:
         source, target = (crop_nearest(cloud, pair["anchor"], points) for cloud in (source, target))
@@ -128,9 +131,7 @@ def teacher_view(pair: dict, points: int, protocol: ScanProtocol) -> tuple[np.nd
 
 def network_view(source: np.ndarray, target: np.ndarray, points: int) -> tuple[np.ndarray, np.ndarray, Normalisation]:
     """The clouds as the service gives them to the network: farthest-point sampled and normalised."""
-    source, target = (
-        cloud[farthest_point_sample(cloud, points)] if len(cloud) > points else cloud for cloud in (source, target)
-    )
+    source, target = at_most(source, points), at_most(target, points)
     normalisation = Normalisation(source, target)
     return (
         normalisation.source(source).astype(np.float32),

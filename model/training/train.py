@@ -2,7 +2,8 @@
 
     python -m model.training.train --preset fast --epochs 2 --out runs/fast
     python -m model.training.train --domain indoor --init-weights model/weights/ifnet-fast.pt \
-        --override edgeconv_k=16 --epochs 40 --out runs/indoor          # scene pairs from real scans
+        --override edgeconv_k=16 --teacher model/weights/ifnet-fast.pt --lr 5e-4 --epochs 27 \
+        --out runs/indoor                                                # scene pairs from real scans
 
 Writes <out>/checkpoint.pt every --checkpoint-every steps (and at the end), a CSV log of the
 losses, and losses.png. Rerunning the same command resumes from the checkpoint.
