@@ -168,6 +168,11 @@ def farthest_point_sample(points: np.ndarray, count: int, start: int = 0) -> np.
     return chosen
 
 
+def at_most(cloud: np.ndarray, count: int) -> np.ndarray:
+    """The cloud farthest-point sampled down to `count` points, or whole if it has no more."""
+    return cloud[farthest_point_sample(cloud, count)] if len(cloud) > count else cloud
+
+
 def resample_indices(
     num_points: int, count: int, method: str, rng: np.random.Generator, points: np.ndarray
 ) -> np.ndarray:

@@ -16,7 +16,7 @@ import numpy as np
 import torch
 from torch.utils.data import Dataset
 
-from model.geometry import apply_transform, crop_nearest, random_rotation
+from model.geometry import apply_transform, crop_nearest, farthest_point_sample, random_rotation
 
 DEFAULT_DATA_DIR = Path(__file__).resolve().parents[2].parent / "shared" / "data"
 SPLIT_FILES = {"train": "modelnet10_train.npz", "same": "modelnet10_test.npz", "unseen": "modelnet40_unseen.npz"}
@@ -105,11 +105,20 @@ class RegistrationPairs(Dataset):
     identical across runs and workers, and training draws new motions each epoch (set `epoch`).
 
     Given several protocols, each pair draws one of them (e.g. clean and jitter pairs mixed for
-    training); they must give clouds of one size so that pairs batch together.
+    training); they must give clouds of one size so that pairs batch together. A network of fewer
+    points than the clouds (`network_points`) gets each cloud farthest-point sampled down to its
+    count from a random start, as the service samples; the noise-free clouds stay whole.
     """
 
-    def __init__(self, shapes: np.ndarray, protocols: Protocol | Sequence[Protocol] = Protocol(), seed: int = 0):
+    def __init__(
+        self,
+        shapes: np.ndarray,
+        protocols: Protocol | Sequence[Protocol] = Protocol(),
+        seed: int = 0,
+        network_points: int | None = None,
+    ):
         self.shapes = shapes
+        self.network_points = network_points
         self.protocols = (protocols,) if isinstance(protocols, Protocol) else tuple(protocols)
         if len({p.cloud_points for p in self.protocols}) != 1:
             raise ValueError("protocols to mix must give clouds of one size (outliers add points: train on them alone)")
@@ -124,6 +133,10 @@ class RegistrationPairs(Dataset):
         # A single protocol draws nothing, so its pairs stay those of the seeded evaluation sets.
         protocol = self.protocols[rng.integers(len(self.protocols))] if len(self.protocols) > 1 else self.protocols[0]
         pair = make_pair(self.shapes[index], protocol, rng)
+        if self.network_points and protocol.cloud_points > self.network_points:
+            for key in ("source", "target"):
+                cloud = pair[key]
+                pair[key] = cloud[farthest_point_sample(cloud, self.network_points, int(rng.integers(len(cloud))))]
         return {key: torch.from_numpy(value) for key, value in pair.items()}
 
 

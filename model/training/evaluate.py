@@ -24,7 +24,7 @@ os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 import numpy as np  # noqa: E402
 
 from model.cli import UserError, non_negative_float, non_negative_int, positive_int, reports_user_errors
-from model.geometry import from_matrix, refine, registration_errors, summarise_errors
+from model.geometry import at_most, from_matrix, refine, registration_errors, summarise_errors
 from model.training.data import DEFAULT_DATA_DIR, Protocol, load_split, make_pair
 
 # Correspondence distance of every ICP here, in unit-sphere units: large enough to pull in a
@@ -43,7 +43,8 @@ REFINED = "IFNet + ICP"  # the network's estimate refined by point-to-point ICP,
 
 
 def network_runner(model_path: Path, threads: int) -> Registration:
-    """(source, target) -> (R, t) with the network, from an ONNX file or a torch checkpoint."""
+    """(source, target) -> (R, t) with the network, from an ONNX file or a torch checkpoint; clouds
+    larger than the network's point count are farthest-point sampled down to it, as the service does."""
     if not model_path.is_file():
         raise UserError(f"--model {model_path}: no such file (an .onnx export or .pt weights)")
     if model_path.suffix == ".onnx":
@@ -54,7 +55,10 @@ def network_runner(model_path: Path, threads: int) -> Registration:
         except Exception as error:  # onnxruntime's own exception types
             raise UserError(f"--model {model_path}: ONNX Runtime cannot load it ({str(error)[:120]})") from None
 
+        points = int(session.get_modelmeta().custom_metadata_map.get("num_points", 768))
+
         def run_onnx(source: np.ndarray, target: np.ndarray):
+            source, target = at_most(source, points), at_most(target, points)
             rotation, translation = session.run(None, {"source": source[None], "target": target[None]})
             return rotation[0].astype(np.float64), translation[0].astype(np.float64)
 
@@ -68,6 +72,7 @@ def network_runner(model_path: Path, threads: int) -> Registration:
     model = load_checkpoint(model_path).model
 
     def run_torch(source: np.ndarray, target: np.ndarray):
+        source, target = at_most(source, model.config.num_points), at_most(target, model.config.num_points)
         with torch.no_grad():
             out = model(torch.from_numpy(source)[None], torch.from_numpy(target)[None])
         return out.rotation[0].double().numpy(), out.translation[0].double().numpy()

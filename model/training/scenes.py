@@ -22,9 +22,9 @@ from torch.utils.data import Dataset
 from model.geometry import (
     Normalisation,
     apply_transform,
+    at_most,
     crop_nearest,
     disjoint_halves,
-    farthest_point_sample,
     random_rotation,
     voxel_downsample,
 )
@@ -111,11 +111,6 @@ def make_scan_pair(scan: np.ndarray, protocol: ScanProtocol, rng: np.random.Gene
         "shared": shared,
         "anchor": anchor,
     }
-
-
-def at_most(cloud: np.ndarray, count: int) -> np.ndarray:
-    """The cloud farthest-point sampled down to `count` points, or whole if it has no more."""
-    return cloud[farthest_point_sample(cloud, count)] if len(cloud) > count else cloud
 
 
 def teacher_view(pair: dict, points: int, protocol: ScanProtocol) -> tuple[np.ndarray, np.ndarray]:

@@ -168,10 +168,10 @@ def learning_rate(args: argparse.Namespace, step: int, total_steps: int) -> floa
     return args.lr * 0.5 * (1.0 + math.cos(math.pi * min(step / max(total_steps, 1), 1.0)))
 
 
-def training_pairs(shapes: np.ndarray, args: argparse.Namespace) -> RegistrationPairs:
+def training_pairs(shapes: np.ndarray, args: argparse.Namespace, network_points: int) -> RegistrationPairs:
     """The training pairs: --noise kinds mixed pair by pair, jitter of --jitter-sigma."""
     protocols = [Protocol(noise=kind, jitter_sigma=args.jitter_sigma) for kind in args.noise]
-    return RegistrationPairs(shapes, protocols, seed=args.seed)
+    return RegistrationPairs(shapes, protocols, seed=args.seed, network_points=network_points)
 
 
 def object_pairs(
@@ -185,11 +185,13 @@ def object_pairs(
     if args.max_shapes:
         train_shapes = train_shapes[: args.max_shapes]
     try:
-        train_pairs = training_pairs(train_shapes, args)
+        train_pairs = training_pairs(train_shapes, args, config.num_points)
     except ValueError as error:  # kinds of noise that cannot be mixed
         raise UserError(f"--noise {' '.join(args.noise)}: {error}") from None
     validation = {
-        column: RegistrationPairs(val_shapes, Protocol(noise=noise), seed=args.seed + 1)
+        column: RegistrationPairs(
+            val_shapes, Protocol(noise=noise), seed=args.seed + 1, network_points=config.num_points
+        )
         for column, noise in VALIDATION_COLUMNS.items()
     }
     return train_pairs, validation

@@ -108,10 +108,20 @@ def test_disjoint_halves_split_a_cloud_without_a_common_point():
 def test_training_jitter_sigma_reaches_the_pairs(shapes):
     from model.training.train import parse_args, training_pairs
 
-    pairs = training_pairs(shapes, parse_args(["--noise", "jitter", "--jitter-sigma", "0.002"]))
+    pairs = training_pairs(shapes, parse_args(["--noise", "jitter", "--jitter-sigma", "0.002"]), 768)
     offsets = np.concatenate([cKDTree(shapes[i]).query(pairs[i]["source"].numpy())[0] for i in range(4)])
     assert offsets.max() <= 5 * 0.002 * np.sqrt(3) + 1e-6  # the default sigma (0.01) would exceed this
     assert np.median(offsets) > 0.001
+
+
+def test_a_smaller_network_gets_clouds_sampled_from_the_pair_and_the_teacher_the_whole_pair(shapes):
+    whole, sampled = RegistrationPairs(shapes, seed=2)[3], RegistrationPairs(shapes, seed=2, network_points=384)[3]
+    for key in ("source", "target"):
+        assert sampled[key].shape == (384, 3)
+        assert len(np.unique(sampled[key].numpy(), axis=0)) == 384
+        assert cKDTree(whole[key].numpy()).query(sampled[key].numpy())[0].max() == 0.0  # points of the pair
+        assert torch.equal(sampled[f"noise_free_{key}"], whole[f"noise_free_{key}"])
+    assert torch.equal(sampled["rotation"], whole["rotation"])
 
 
 def test_protocols_of_different_cloud_sizes_cannot_be_mixed(shapes):
@@ -342,6 +352,27 @@ def test_evaluation_reports_the_network_and_its_icp_refinement(tmp_path, shapes)
     assert results["same"]["IFNet + ICP"]["iso_r_median"] < 1.0
     report = (out / "evaluation.md").read_text()
     assert "--jitter-sigma 0.002" in report and "### jitter (3 pairs)" in report
+
+
+def test_evaluation_samples_the_clouds_down_to_the_networks_point_count(tmp_path, shapes, monkeypatch):
+    import dataclasses
+
+    from model.ifnet import IFNet
+    from model.training.evaluate import network_runner
+
+    network = save_random_network(tmp_path / "big.pt", seed=5)
+    small = IFNet(dataclasses.replace(network.config, num_points=256))
+    torch.save({"model": network.state_dict(), "config": small.config.to_dict()}, tmp_path / "small.pt")
+    seen, forward = [], IFNet.forward
+
+    def recording_forward(self, source, target):
+        seen.append((source.shape, target.shape))
+        return forward(self, source, target)
+
+    monkeypatch.setattr(IFNet, "forward", recording_forward)
+    pair = make_pair(shapes[0], Protocol(), np.random.default_rng(0))
+    rotation, _ = network_runner(tmp_path / "small.pt", threads=1)(pair["source"], pair["target"])
+    assert seen == [((1, 256, 3), (1, 256, 3))] and rotation.shape == (3, 3)
 
 
 def test_config_overrides_accept_integer_fields_only():
