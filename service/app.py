@@ -11,7 +11,6 @@ from fastapi.exceptions import RequestValidationError
 from fastapi.openapi.utils import get_openapi
 from fastapi.responses import JSONResponse
 from fastapi_offline import FastAPIOffline
-from pydantic import ValidationError
 from starlette.exceptions import HTTPException as StarletteHTTPException
 from starlette.requests import ClientDisconnect
 
@@ -120,10 +119,6 @@ def _install_error_handlers(app: FastAPI) -> None:
     @app.exception_handler(RequestValidationError)
     async def on_request_validation(request: Request, error: RequestValidationError) -> JSONResponse:
         return validation_failed(request, list(error.errors()))
-
-    @app.exception_handler(ValidationError)
-    async def on_validation(request: Request, error: ValidationError) -> JSONResponse:
-        return validation_failed(request, error.errors(include_url=False, include_input=False))
 
     @app.exception_handler(InvalidInput)
     async def on_invalid_input(request: Request, error: InvalidInput) -> JSONResponse:

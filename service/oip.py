@@ -12,6 +12,7 @@ from typing import Annotated
 import numpy as np
 from fastapi import APIRouter, Depends, HTTPException, Path, Request
 from fastapi.responses import JSONResponse
+from pydantic import ValidationError
 
 from service import __version__
 from service.dependencies import AdmittedService, LoadedService, Service, require_api_key
@@ -32,7 +33,7 @@ from service.schemas import (
 )
 from service.state import ServedModel, ServiceState
 from service.uploads import parse_json
-from service.validation import InvalidInput, as_points
+from service.validation import InvalidInput, as_points, invalid_request
 
 router = APIRouter(prefix="/v2", tags=["open inference protocol v2"])
 
@@ -188,7 +189,10 @@ async def _infer(
     source, target = _clouds(tensors["source"]), _clouds(tensors["target"])
     if len(source) != len(target):
         raise InvalidInput("target", f"batch size {len(target)} differs from the source's {len(source)}")
-    options = RegistrationOptions.model_validate(payload.parameters or {})
+    try:
+        options = RegistrationOptions.model_validate(payload.parameters or {})
+    except ValidationError as error:
+        raise invalid_request(error, "parameters") from None
     if options.model not in (None, model.info.name):
         raise InvalidInput("model", f"is {options.model!r} in the parameters but {model.info.name!r} in the path")
     options = options.model_copy(update={"model": model.info.name})

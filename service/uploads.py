@@ -15,7 +15,7 @@ from starlette.requests import Request
 from service.formats import UnsupportedFormat, read_cloud, read_pair
 from service.schemas import RegisterRequest, RegistrationOptions
 from service.settings import Settings
-from service.validation import InvalidInput
+from service.validation import InvalidInput, invalid_request
 
 Model = TypeVar("Model", bound=BaseModel)
 T = TypeVar("T")
@@ -54,9 +54,12 @@ async def parse_in_thread(request: Request, size: int, parse: Callable[..., T], 
 async def parse_json(request: Request, schema: type[Model]) -> Model:
     """Validate a JSON body in a worker thread: a 100k-point body takes a while and must not stall
     the event loop (health checks, other clients). Bodies over LARGE_JSON_BYTES are parsed one at
-    a time. Raises pydantic's ValidationError (422)."""
+    a time. Raises RequestValidationError (422)."""
     body = await request.body()
-    return await parse_in_thread(request, len(body), schema.model_validate_json, body)
+    try:
+        return await parse_in_thread(request, len(body), schema.model_validate_json, body)
+    except ValidationError as error:
+        raise invalid_request(error) from None
 
 
 def media_type(request: Request) -> str:
@@ -68,7 +71,7 @@ async def read_register_body(
 ) -> tuple[np.ndarray, np.ndarray, RegistrationOptions]:
     """Source, target and options of a /register request, whatever its content type.
 
-    Raises UnsupportedMediaType (415), InvalidInput or pydantic's ValidationError (422).
+    Raises UnsupportedMediaType (415), InvalidInput or RequestValidationError (422).
     """
     unknown = sorted(set(request.query_params) - {"options"})
     if unknown:
@@ -154,4 +157,4 @@ def _options(text: str | None) -> RegistrationOptions:
             reason = (unreadable[0].get("ctx") or {}).get("error", "")
             example = '{"refine": true}'
             raise InvalidInput("options", f"is not valid JSON ({reason}); send an object like {example}") from None
-        raise
+        raise invalid_request(error) from None

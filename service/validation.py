@@ -5,6 +5,8 @@ from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
+from fastapi.exceptions import RequestValidationError
+from pydantic import ValidationError
 
 from model.geometry import degeneracy, from_matrix, nearest_rotation, remove_duplicates, rigidity_error, to_matrix
 
@@ -19,6 +21,13 @@ class InvalidInput(ValueError):
         super().__init__(f"{field}: {problem}")
         self.field = field
         self.problem = problem
+
+
+def invalid_request(error: ValidationError, *location: str) -> RequestValidationError:
+    """A request's values that fail their schema, answered 422 naming the field (under `location`).
+    A ValidationError left as it is comes from the service's own answer: a 500, logged."""
+    errors = error.errors(include_url=False, include_input=False)
+    return RequestValidationError([{**item, "loc": (*location, *item["loc"])} for item in errors])
 
 
 def as_points(value: Any, field: str) -> np.ndarray:

@@ -492,7 +492,21 @@ async def test_raw_npy_and_npz_bodies(serve, tiny_model):
     assert options_twice.status_code == 422 and options_twice.json()["detail"].startswith("options:")
 
 
-async def test_an_unforeseen_error_is_still_a_json_answer(tiny_model, monkeypatch, caplog):
+def answer_failing_its_schema():
+    from service.schemas import LatencySummary
+
+    LatencySummary.model_validate({})  # the service's own answer missing its fields
+
+
+@pytest.mark.parametrize(
+    ("bug", "logged"),
+    [
+        (RuntimeError("a bug"), "RuntimeError('a bug')"),
+        # A 500, not a 422: the user sent nothing wrong.
+        (answer_failing_its_schema, "4 validation errors for LatencySummary"),
+    ],
+)
+async def test_an_unforeseen_error_is_still_a_json_answer(tiny_model, monkeypatch, caplog, bug, logged):
     """A bug past the input checks answers 500 in the route's error shape; the traceback goes to the log."""
     import httpx
 
@@ -500,7 +514,9 @@ async def test_an_unforeseen_error_is_still_a_json_answer(tiny_model, monkeypatc
     from service.app import create_app
 
     def broken(*args, **kwargs):
-        raise RuntimeError("a bug")
+        if callable(bug):
+            bug()
+        raise bug
 
     monkeypatch.setattr(routes, "register_pairs", broken)
     app = create_app(settings_for(tiny_model))
@@ -515,7 +531,7 @@ async def test_an_unforeseen_error_is_still_a_json_answer(tiny_model, monkeypatc
         "detail": f"internal error; the server log has the details under request id {identifier}",
         "errors": [],
     }
-    assert f"request {identifier} (POST /register) failed: RuntimeError('a bug')" in caplog.text
+    assert f"request {identifier} (POST /register) failed: {logged}" in caplog.text
 
 
 async def test_every_answer_carries_a_request_id(serve, tiny_model):

@@ -139,6 +139,7 @@ async def test_each_model_is_listed_described_and_run_by_name(serve, repository)
                          for name, cloud in (("source", SOURCE), ("target", TARGET))]}  # fmt: skip
         inferred = (await client.post("/v2/models/indoor/infer", json=v2)).json()
         crossed = await client.post("/v2/models/indoor/infer", json={**v2, "parameters": {"model": "object"}})
+        unknown_method = await client.post("/v2/models/indoor/infer", json={**v2, "parameters": {"method": "fast"}})
     assert listed == {
         "models": [
             {"name": "object", "version": "0" * 12, "ready": True},
@@ -153,6 +154,7 @@ async def test_each_model_is_listed_described_and_run_by_name(serve, repository)
     assert inferred["model_name"] == "indoor"
     np.testing.assert_allclose(np.reshape(inferred["outputs"][1]["data"], 3), [0.3, -0.2, 0.1], atol=1e-5)
     assert crossed.status_code == 422 and "model: is 'object' in the parameters but 'indoor'" in crossed.json()["error"]
+    assert unknown_method.status_code == 422 and "parameters.method: " in unknown_method.json()["error"]
 
 
 async def test_the_model_option_picks_the_network_in_every_body_format(serve, repository):
