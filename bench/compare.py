@@ -162,8 +162,10 @@ def peers(args) -> int:
         sets[f"ModelNet {spec}"] = harness.modelnet_pairs(
             args.modelnet_pairs, split, noise, so3=rest == ["so3"], seed=args.seed
         )
-    for domain in args.scenes:
-        sets[f"{domain} scenes"] = harness.scene_pairs(domain, args.scene_pairs, seed=args.seed)
+    for spec in args.scenes:
+        domain, _, shared = spec.partition(":")
+        label = f"{domain} scenes" + (", shared points" if shared else "")
+        sets[label] = harness.scene_pairs(domain, args.scene_pairs, seed=args.seed, shared=bool(shared))
     if args.scans:
         sets["real scans"] = [harness.scan_pair(spec, args.seed, max_angle_deg=args.scan_angle) for spec in args.scans]
     if args.truth_pairs:
@@ -231,8 +233,9 @@ def main(argv: list[str] | None = None) -> int:
         "--scenes",
         nargs="*",
         default=[],
-        choices=["indoor", "outdoor"],
-        help="the paper's scene protocol on the scans of the scenes held out of training",
+        choices=["indoor", "outdoor", "indoor:shared", "outdoor:shared"],
+        help="the paper's scene protocol on the scans of the scenes held out of training; "
+        "':shared': both clouds one sample of the scan, as the paper's own pairs",
     )
     p.add_argument("--scene-pairs", type=int, default=1, help="pairs per held-out scan")
     p.add_argument("--scans", nargs="*", default=list(DEFAULT_SCANS), help="archive/name of scans in the shared data")

@@ -245,21 +245,23 @@ def scan_pair(spec: str, seed: int = 0, keep: float = 0.7, max_angle_deg: float 
     return Pair(spec, source, view @ rotation.T + translation, rotation, translation, scan_voxel(archive, name))
 
 
-def scene_pairs(domain: str, per_scan: int = 1, seed: int = 0) -> list[Pair]:
+def scene_pairs(domain: str, per_scan: int = 1, seed: int = 0, shared: bool = False) -> list[Pair]:
     """The paper's indoor or outdoor protocol (model.training.scenes) on every scan of the scenes held
-    out of training, `per_scan` pairs each, pair k of scan i seeded by (seed, i, k)."""
-    from model.training.scenes import PROTOCOLS, load_scans, make_scan_pair
+    out of training, `per_scan` pairs each, pair k of scan i seeded by (seed, i, k). The clouds are
+    two disjoint samples of the scan, or with `shared` one sample moved, as the paper builds its
+    pairs: then they share every point of their overlap."""
+    from model.training.scenes import PROTOCOLS, load_scans, make_scan_pair, teacher_view
 
+    protocol = PROTOCOLS[domain]
     voxel = VOXEL_OUTDOOR if domain == "outdoor" else VOXEL_OBJECTS_INDOOR
     pairs = []
     for i, (name, scan) in enumerate(load_scans(domain, "test", DATA).items()):
         for k in range(per_scan):
-            pair = make_scan_pair(scan, PROTOCOLS[domain], np.random.default_rng((seed, i, k)))
-            pairs.append(
-                Pair(
-                    f"{domain}/{name}/{k}", pair["source"], pair["target"], pair["rotation"], pair["translation"], voxel
-                )
-            )
+            pair = make_scan_pair(scan, protocol, np.random.default_rng((seed, i, k)))
+            source, target = pair["source"], pair["target"]
+            if shared:
+                source, target = teacher_view(pair, protocol.crop_points or protocol.sample_points, protocol)
+            pairs.append(Pair(f"{domain}/{name}/{k}", source, target, pair["rotation"], pair["translation"], voxel))
     return pairs
 
 
