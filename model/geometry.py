@@ -331,38 +331,6 @@ def surface_normals(points: np.ndarray, tree: cKDTree, cloud: np.ndarray, neighb
     return vectors[:, :, 0]
 
 
-def score_alignment(
-    source: np.ndarray,
-    target: np.ndarray,
-    rotation: np.ndarray,
-    translation: np.ndarray,
-    spacing: float | None = None,
-) -> AlignmentScore:
-    """Fitness and inlier RMSE of (R, t) at INLIER_SPACINGS point spacings, both ways, and how
-    well the inliers constrain the motion.
-
-    spacing: pass it when scoring many transforms of one pair (it depends only on the clouds).
-    """
-    if spacing is None:
-        spacing = max(point_spacing(source), point_spacing(target))
-    threshold = INLIER_SPACINGS * spacing
-    moved = apply_transform(source, rotation, translation)
-    target_tree = cKDTree(target)
-    forward, matches = target_tree.query(moved, k=1, distance_upper_bound=threshold)
-    backward, _ = cKDTree(moved).query(target, k=1, distance_upper_bound=threshold)
-    inliers = np.isfinite(forward)
-    matched = target[matches[inliers]]
-    return AlignmentScore(
-        spacing=float(spacing),
-        threshold=float(threshold),
-        fitness=float(inliers.mean()),
-        inlier_rmse=float(np.sqrt(np.mean(forward[inliers] ** 2))) if inliers.any() else 0.0,
-        overlap=float(np.isfinite(backward).mean()),
-        inliers=int(inliers.sum()),
-        constraint=inlier_constraint(matched, surface_normals(matched, target_tree, target)) if len(matched) else 0.0,
-    )
-
-
 class Verdict(NamedTuple):
     verified: bool
     reason: str | None  # why not, when verified is False
@@ -399,20 +367,8 @@ def verify_alignment(
     translation: np.ndarray,
     spacing: float | None = None,
 ) -> Verification:
-    """Is (R, t) right? Scores it at the clouds' point spacing, refines it once to see whether it
-    has settled, and judges both (judge). Call it on the final answer, refined or not."""
-    if spacing is None:
-        spacing = max(point_spacing(source), point_spacing(target))
-    score = score_alignment(source, target, rotation, translation, spacing)
-    # A few iterations per small_gicp call, so that a caller's other threads are not stalled for long.
-    refined_rotation, refined_translation, _ = refine(
-        source, target, rotation, translation, spacing=spacing, max_seconds=CHECK_REFINE_SECONDS
-    )
-    moved = apply_transform(source, rotation, translation)
-    shift = apply_transform(source, refined_rotation, refined_translation) - moved
-    drift = float(np.sqrt(np.mean(np.sum(shift**2, axis=1))) / spacing) if spacing > 0 else float("inf")
-    verdict = judge(score, drift)
-    return Verification(verdict.verified, verdict.reason, score, drift)
+    """Is (R, t) right? AlignmentClouds.verify on one pair."""
+    return AlignmentClouds(source, target, spacing).verify(rotation, translation)
 
 
 # ---------------------------------------------------------------- refinement (spacing-based)
@@ -427,56 +383,119 @@ def refine(
     method: str = "GICP",
     max_iterations: int = 30,
     spacing: float | None = None,
-    max_points: int | None = None,
     max_seconds: float | None = None,
 ) -> tuple[np.ndarray, np.ndarray, int]:
-    """small_gicp registration (GICP by default) on the full clouds from (rotation, translation).
+    """small_gicp registration of one pair from (rotation, translation): AlignmentClouds.refine."""
+    return AlignmentClouds(source, target, spacing).refine(
+        rotation, translation, max_distance, method, max_iterations, max_seconds
+    )
 
-    max_distance: the correspondence distance in the clouds' units; by default REFINE_SPACINGS
-    point spacings (pass spacing if known). method: small_gicp's "GICP", "PLANE_ICP" or "ICP".
-    Returns the refined (R, t) and the number of iterations run.
 
-    small_gicp holds the interpreter lock while it runs, so a caller that shares the process with
-    other work (the service) bounds it: `max_points` refines on a seeded random subset of each
-    larger cloud, and the iterations run a few at a time, between which other threads get the
-    lock and after which `max_seconds` (if given) may end the refinement early.
-    """
-    import small_gicp  # imported here so that the rest of this module needs only numpy/scipy
+class GicpClouds(NamedTuple):
+    """small_gicp's objects of one pair (that module is imported only where they are built)."""
 
-    if max_points is not None:
-        source, target = (subset(cloud, max_points) for cloud in (source, target))
-    if max_distance is None:
-        if spacing is None:
-            spacing = max(point_spacing(source), point_spacing(target))
-        max_distance = REFINE_SPACINGS * spacing
-    target_cloud = small_gicp.PointCloud(np.ascontiguousarray(target, dtype=np.float64))
-    source_cloud = small_gicp.PointCloud(np.ascontiguousarray(source, dtype=np.float64))
-    target_tree = small_gicp.KdTree(target_cloud)
-    if method != "ICP":
-        small_gicp.estimate_normals_covariances(target_cloud, target_tree, num_neighbors=20)
+    source: object  # small_gicp.PointCloud with normals and covariances
+    target: object  # small_gicp.PointCloud with normals and covariances
+    target_tree: object  # small_gicp.KdTree of the target
+
+
+class AlignmentClouds:
+    """One pair's clouds made ready once for every refinement and check of its answers: the point
+    spacing, scipy's kd-tree of the target (scores), and small_gicp's clouds with their normals and
+    covariances and its kd-tree of the target (refinement). Never changed after construction, so
+    threads may share it; building it takes about as long as a few GICP iterations."""
+
+    def __init__(self, source: np.ndarray, target: np.ndarray, spacing: float | None = None):
+        import small_gicp  # imported here so that the rest of this module needs only numpy/scipy
+
+        self.source = np.ascontiguousarray(source, dtype=np.float64)
+        self.target = np.ascontiguousarray(target, dtype=np.float64)
+        self.spacing = max(point_spacing(self.source), point_spacing(self.target)) if spacing is None else spacing
+        self.target_tree = cKDTree(self.target)
+        source_cloud, target_cloud = small_gicp.PointCloud(self.source), small_gicp.PointCloud(self.target)
+        target_gicp_tree = small_gicp.KdTree(target_cloud)
+        small_gicp.estimate_normals_covariances(target_cloud, target_gicp_tree, num_neighbors=20)
         small_gicp.estimate_normals_covariances(source_cloud, small_gicp.KdTree(source_cloud), num_neighbors=20)
-    step = max_iterations if max_points is None and max_seconds is None else ITERATIONS_PER_CALL
-    transform = to_matrix(rotation, translation)
-    steps = 0  # small_gicp numbers its steps from 0 and reports the last one's number
-    started = time.perf_counter()
-    while steps < max_iterations:
-        result = small_gicp.align(
-            target_cloud,
-            source_cloud,
-            target_tree,
-            init_T_target_source=transform,
-            registration_type=method,
-            max_correspondence_distance=max_distance,
-            max_iterations=min(step, max_iterations - steps),
-            rotation_epsilon=1e-5,
-            translation_epsilon=1e-6 * max_distance,
+        self.gicp = GicpClouds(source_cloud, target_cloud, target_gicp_tree)
+
+    def score(self, rotation: np.ndarray, translation: np.ndarray) -> AlignmentScore:
+        """Fitness and inlier RMSE of (R, t) at INLIER_SPACINGS point spacings, both ways, and how
+        well the inliers constrain the motion."""
+        threshold = INLIER_SPACINGS * self.spacing
+        moved = apply_transform(self.source, rotation, translation)
+        forward, matches = self.target_tree.query(moved, k=1, distance_upper_bound=threshold)
+        backward, _ = cKDTree(moved).query(self.target, k=1, distance_upper_bound=threshold)
+        inliers = np.isfinite(forward)
+        matched = self.target[matches[inliers]]
+        normals = surface_normals(matched, self.target_tree, self.target)
+        return AlignmentScore(
+            spacing=float(self.spacing),
+            threshold=float(threshold),
+            fitness=float(inliers.mean()),
+            inlier_rmse=float(np.sqrt(np.mean(forward[inliers] ** 2))) if inliers.any() else 0.0,
+            overlap=float(np.isfinite(backward).mean()),
+            inliers=int(inliers.sum()),
+            constraint=inlier_constraint(matched, normals) if len(matched) else 0.0,
         )
-        transform = np.asarray(result.T_target_source)
-        steps += int(result.iterations) + 1
-        if result.converged or (max_seconds is not None and time.perf_counter() - started > max_seconds):
-            break
-    refined_rotation, refined_translation = from_matrix(transform)
-    return nearest_rotation(refined_rotation), refined_translation, steps - 1
+
+    def verify(self, rotation: np.ndarray, translation: np.ndarray) -> Verification:
+        """Is (R, t) right? Scores it at the clouds' point spacing, refines it once to see whether it
+        has settled, and judges both (judge). Call it on the final answer, refined or not."""
+        score = self.score(rotation, translation)
+        refined_rotation, refined_translation, _ = self.refine(rotation, translation, max_seconds=CHECK_REFINE_SECONDS)
+        moved = apply_transform(self.source, rotation, translation)
+        shift = apply_transform(self.source, refined_rotation, refined_translation) - moved
+        spacing = self.spacing
+        drift = float(np.sqrt(np.mean(np.sum(shift**2, axis=1))) / spacing) if spacing > 0 else float("inf")
+        verdict = judge(score, drift)
+        return Verification(verdict.verified, verdict.reason, score, drift)
+
+    def refine(
+        self,
+        rotation: np.ndarray,
+        translation: np.ndarray,
+        max_distance: float | None = None,
+        method: str = "GICP",
+        max_iterations: int = 30,
+        max_seconds: float | None = None,
+    ) -> tuple[np.ndarray, np.ndarray, int]:
+        """small_gicp registration (GICP by default) of the whole clouds from (rotation, translation).
+
+        max_distance: the correspondence distance in the clouds' units; by default REFINE_SPACINGS
+        point spacings. method: small_gicp's "GICP", "PLANE_ICP" or "ICP". Returns the refined
+        (R, t) and the number of iterations run.
+
+        small_gicp holds the interpreter lock while it runs, so a caller that shares the process
+        with other work (the service) passes `max_seconds`: the iterations then run a few at a
+        time, between which other threads get the lock and after which the refinement may end.
+        """
+        import small_gicp
+
+        if max_distance is None:
+            max_distance = REFINE_SPACINGS * self.spacing
+        clouds = self.gicp
+        step = max_iterations if max_seconds is None else ITERATIONS_PER_CALL
+        transform = to_matrix(rotation, translation)
+        steps = 0  # small_gicp numbers its steps from 0 and reports the last one's number
+        started = time.perf_counter()
+        while steps < max_iterations:
+            result = small_gicp.align(
+                clouds.target,
+                clouds.source,
+                clouds.target_tree,
+                init_T_target_source=transform,
+                registration_type=method,
+                max_correspondence_distance=max_distance,
+                max_iterations=min(step, max_iterations - steps),
+                rotation_epsilon=1e-5,
+                translation_epsilon=1e-6 * max_distance,
+            )
+            transform = np.asarray(result.T_target_source)
+            steps += int(result.iterations) + 1
+            if result.converged or (max_seconds is not None and time.perf_counter() - started > max_seconds):
+                break
+        refined_rotation, refined_translation = from_matrix(transform)
+        return nearest_rotation(refined_rotation), refined_translation, steps - 1
 
 
 # ---------------------------------------------------------------- feature-based global registration

@@ -26,6 +26,7 @@ from starlette.requests import Request
 from model.geometry import (
     INLIER_SPACINGS,
     REFINE_SPACINGS,
+    AlignmentClouds,
     Normalisation,
     Verification,
     apply_transform,
@@ -33,13 +34,10 @@ from model.geometry import (
     fitness_and_rmse,
     from_matrix,
     nearest_rotation,
-    point_spacing,
-    refine,
     resample_indices,
     rotation_angle_deg,
     subset,
     to_matrix,
-    verify_alignment,
 )
 from service.batcher import Prediction, RequestTimeoutError
 from service.schemas import RefineOptions, RegistrationOptions, Sampling
@@ -149,9 +147,7 @@ class _Prepared:
     normalisation: Normalisation
     init: np.ndarray  # 4x4
     points: CloudReports
-    source_check: np.ndarray  # at most CHECK_MAX_POINTS of `source`: what refinement and the check use
-    target_check: np.ndarray
-    spacing: float  # the check clouds' point spacing (model.geometry.point_spacing)
+    check: AlignmentClouds  # at most CHECK_MAX_POINTS of each cloud: what refinement and the check use
     seconds: float
 
 
@@ -168,7 +164,7 @@ def _prepare(
     init = np.eye(4) if options.init is None else options.init
     source_sampled = apply_transform(sampled["source"], *from_matrix(init))
     normalisation = Normalisation(source_sampled, sampled["target"])
-    source_check, target_check = (subset(clouds[name], CHECK_MAX_POINTS) for name in ("source", "target"))
+    check = AlignmentClouds(*(subset(clouds[name], CHECK_MAX_POINTS) for name in ("source", "target")))
     return _Prepared(
         source=clouds["source"],
         target=clouds["target"],
@@ -177,9 +173,7 @@ def _prepare(
         normalisation=normalisation,
         init=init,
         points=CloudReports(**reports),
-        source_check=source_check,
-        target_check=target_check,
-        spacing=max(point_spacing(source_check), point_spacing(target_check)),
+        check=check,
         seconds=time.perf_counter() - started,
     )
 
@@ -211,14 +205,12 @@ def _checked(prepared: _Prepared, rotation: np.ndarray, translation: np.ndarray,
     refinement = None
     if refine_options is not None:
         network_transform = to_matrix(rotation, translation)
-        fine = REFINE_SPACINGS * prepared.spacing
+        fine = REFINE_SPACINGS * prepared.check.spacing
         coarse = COARSE_DISTANCE_NORMALISED / prepared.normalisation.scale
         distances = [refine_options.max_distance] if refine_options.max_distance else [max(coarse, fine), fine]
         iterations = 0
         for distance in distances:
-            rotation, translation, steps = refine(
-                prepared.source_check,
-                prepared.target_check,
+            rotation, translation, steps = prepared.check.refine(
                 rotation,
                 translation,
                 distance,
@@ -227,8 +219,7 @@ def _checked(prepared: _Prepared, rotation: np.ndarray, translation: np.ndarray,
             )
             iterations += steps
         refinement = RefineReport(distances[-1], iterations, network_transform)
-    check = verify_alignment(prepared.source_check, prepared.target_check, rotation, translation, prepared.spacing)
-    return _Candidate(rotation, translation, refinement, check)
+    return _Candidate(rotation, translation, refinement, prepared.check.verify(rotation, translation))
 
 
 def _result(
@@ -276,8 +267,8 @@ def _finish_features(prepared: _Prepared, model: str, options: RegistrationOptio
     """Feature matching (KISS-Matcher), whatever the rotation, refined and checked."""
     started = time.perf_counter()
     # KISS-Matcher holds the interpreter lock for its whole run: it gets a smaller subset.
-    source, target = (subset(cloud, FEATURE_MAX_POINTS) for cloud in (prepared.source_check, prepared.target_check))
-    rotation, translation = feature_match(source, target, prepared.spacing)
+    source, target = (subset(cloud, FEATURE_MAX_POINTS) for cloud in (prepared.check.source, prepared.check.target))
+    rotation, translation = feature_match(source, target, prepared.check.spacing)
     chosen = _checked(prepared, rotation, translation, options.refine or RefineOptions())  # a coarse answer
     postprocess_ms = (time.perf_counter() - started) * 1000.0
     timings = {"queue_ms": 0.0, "inference_ms": 0.0, "batch_size": 0, "postprocess_ms": postprocess_ms}
@@ -293,8 +284,8 @@ def _finish_multistart(
     ranked = []
     for start, prediction in zip(STARTS, predictions, strict=True):
         rotation, translation = _user_transform(prepared, prediction, start)
-        moved = apply_transform(prepared.source_check, rotation, translation)
-        fitness, _ = fitness_and_rmse(moved, prepared.target_check, INLIER_SPACINGS * prepared.spacing)
+        moved = apply_transform(prepared.check.source, rotation, translation)
+        fitness, _ = fitness_and_rmse(moved, prepared.check.target, INLIER_SPACINGS * prepared.check.spacing)
         ranked.append((fitness, rotation, translation))
     ranked.sort(key=lambda entry: -entry[0])
     refine_options = options.refine or RefineOptions()  # the starts are coarse: every candidate is refined

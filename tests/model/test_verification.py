@@ -7,6 +7,7 @@ from scipy.spatial.transform import Rotation
 from model.geometry import (
     MAX_DRIFT_SPACINGS,
     MIN_CONSTRAINT,
+    AlignmentClouds,
     AlignmentScore,
     apply_transform,
     inlier_constraint,
@@ -14,7 +15,6 @@ from model.geometry import (
     point_spacing,
     refine,
     rotation_angle_deg,
-    score_alignment,
     verify_alignment,
 )
 
@@ -59,17 +59,17 @@ def test_spacing_is_the_grid_step_and_ignores_duplicates():
 def test_score_uses_the_spacing_not_the_extent():
     """A shift of 5 grid steps keeps no inlier, whatever the cloud's size."""
     points = grid(0.05)
-    exact = score_alignment(points, points, np.eye(3), np.zeros(3))
+    exact = AlignmentClouds(points, points).score(np.eye(3), np.zeros(3))
     assert (exact.fitness, exact.overlap, exact.inlier_rmse) == (1.0, 1.0, 0.0)
     assert exact.threshold == pytest.approx(1.5 * 0.05)
-    shifted = score_alignment(points, points, np.eye(3), np.array([0.0, 0.0, 0.25]))
+    shifted = AlignmentClouds(points, points).score(np.eye(3), np.array([0.0, 0.0, 0.25]))
     assert shifted.fitness == 0.0 and shifted.inliers == 0
 
 
 def test_overlap_counts_the_other_way():
     points = grid(0.05)
     half = points[points[:, 0] < 0.45]  # 9 of the 20 columns
-    score = score_alignment(half, points, np.eye(3), np.zeros(3))
+    score = AlignmentClouds(half, points).score(np.eye(3), np.zeros(3))
     assert score.fitness == 1.0
     # The 10th column lies one step (< 1.5 steps) from the half's last one, so it counts as covered.
     assert score.overlap == pytest.approx(10 / 20)
@@ -83,7 +83,7 @@ def test_constraint_is_zero_on_a_plane_and_positive_on_a_closed_surface():
     # A sphere turns about its centre without leaving its surface: rotations are free, shifts are not.
     assert inlier_constraint(sphere, sphere) == pytest.approx(0.0, abs=1e-9)
     source, target, rotation, translation = pair()
-    assert score_alignment(source, target, rotation, translation).constraint > MIN_CONSTRAINT
+    assert AlignmentClouds(source, target).score(rotation, translation).constraint > MIN_CONSTRAINT
 
 
 @pytest.mark.parametrize("jitter", [0.0, 0.01])
