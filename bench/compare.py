@@ -5,7 +5,7 @@
     python -m bench.compare peers --modelnet --scans --no-truth-pairs --scenes indoor outdoor \
         --request 'indoor={"model": "indoor", "method": "ifnet"}'           # the paper's scene protocols
     python -m bench.compare peers --request auto='{"method": "auto", "refine": true}'   # one more service row
-    python -m bench.compare models /tmp/earlier.onnx service/models/object.onnx        # two ONNX files' calls
+    python -m bench.compare models service/models/object.onnx /tmp/new.onnx    # ONNX files: time and accuracy
 
 Every method meets every pair, in an order rotated from pair to pair; a method's time is read as
 its per-pair ratio to each peer (median over the pairs), since the machine's speed drifts.
@@ -203,19 +203,31 @@ def peers(args) -> int:
 
 
 def models(args) -> int:
-    """Calls of two or more ONNX files in turn on the same ModelNet pair; medians and ratios to the first."""
+    """Two or more ONNX files on the same ModelNet pairs (clean and jittered), called in turn, the
+    order rotated pair by pair: each file's time as its median per-pair ratio to the first file's,
+    and its rotation error alone on each set (mean and median, degrees)."""
     networks = [harness.Network(path, args.threads) for path in args.models]
-    pair = harness.modelnet_pairs(1)[0]
-    feeds = [network.prepare(pair.source, pair.target)[0] for network in networks]
-    for network, feed in zip(networks, feeds, strict=True):
-        network.call(feed)
-    ms = np.zeros((args.rounds, len(networks)))
-    for r in range(args.rounds):
-        for i in np.roll(np.arange(len(networks)), r):
-            ms[r, i] = timed(networks[i].call, feeds[i])[1]
-    medians = np.median(ms, axis=0)
-    for path, median, per_round in zip(args.models, medians, (ms / ms[:, :1]).T, strict=True):
-        print(f"{median:8.1f} ms  {median / medians[0]:.2f}x the first (per round {np.median(per_round):.2f}x)  {path}")
+    sets = {noise: harness.modelnet_pairs(args.pairs, "same", noise, seed=args.seed) for noise in ("clean", "jitter")}
+    ms = []
+    errors = {noise: [[] for _ in networks] for noise in sets}
+    for noise, pairs in sets.items():
+        for k, pair in enumerate(pairs):
+            prepared = [network.prepare(pair.source, pair.target) for network in networks]
+            row = np.zeros(len(networks))
+            for i in np.roll(np.arange(len(networks)), k):
+                feeds, normalisation = prepared[i]
+                networks[i].call(feeds)  # warm: the first call of a new point count plans the graph
+                (rotation, translation), row[i] = timed(networks[i].call, feeds)
+                answer = networks[i].to_user_units(normalisation, rotation, translation)
+                errors[noise][i].append(harness.errors(pair, *answer)["rotation_deg"])
+            ms.append(row)
+    ratios = np.median(np.array(ms) / np.array(ms)[:, :1], axis=0)
+    print(f"{len(ms)} ModelNet10 test pairs; time: median per-pair ratio to the first file; rotation error alone, deg")
+    for i, path in enumerate(args.models):
+        accuracy = "  ".join(
+            f"{noise} mean {np.mean(errors[noise][i]):.3f} median {np.median(errors[noise][i]):.3f}" for noise in sets
+        )
+        print(f"{ratios[i]:5.2f}x  {accuracy}  {path}")
     return 0
 
 
@@ -245,9 +257,10 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--tight-max-points", type=int, default=5000, help="open3d-tight only on pairs this small")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--out", type=Path, default=harness.RESULTS / "compare.json")
-    m = commands.add_parser("models", help="the model call of ONNX files interleaved")
+    m = commands.add_parser("models", help="ONNX files' calls interleaved on the same pairs: time and accuracy")
     m.add_argument("models", type=Path, nargs="+")
-    m.add_argument("--rounds", type=int, default=40)
+    m.add_argument("--pairs", type=int, default=20, help="pairs per set (clean, jittered)")
+    m.add_argument("--seed", type=int, default=0)
     args = parser.parse_args(argv)
     if args.command == "peers":
         args.request = args.request or list(DEFAULT_REQUESTS)
