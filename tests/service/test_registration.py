@@ -134,6 +134,26 @@ def test_refinement_corrects_a_network_error_in_user_units(real_scans):
     assert result.fitness > 0.99
 
 
+@pytest.mark.parametrize("method", ["ifnet", "auto"])
+def test_a_pairs_clouds_are_made_ready_for_refinement_once(real_scans, monkeypatch, method):
+    """Coarse and fine refinement and the check (and under auto, feature matching's refinement
+    and check) share one set of normals and covariances per cloud: two estimates per request."""
+    import small_gicp
+
+    estimates, estimate = [], small_gicp.estimate_normals_covariances
+
+    def counted(*args, **kwargs):
+        estimates.append(len(args[0].points()))
+        return estimate(*args, **kwargs)
+
+    monkeypatch.setattr(small_gicp, "estimate_normals_covariances", counted)
+    source = real_scans["kitti_000008_fov"]
+    target = apply_transform(source, TRUE_ROTATION, TRUE_TRANSLATION)
+    result = register(source, target, 768, method=method, refine=RefineOptions())
+    assert result.verified and result.refinement.iterations >= 1
+    assert estimates == [len(source), len(source)]  # the target's, then the source's
+
+
 def test_farthest_point_sampling_picks_the_point_farthest_from_those_chosen():
     points = np.random.default_rng(7).normal(size=(500, 3)) * [3.0, 1.0, 0.2] + 10.0  # anisotropic, off-centre
     chosen = farthest_point_sample(points, 60, start=4)
