@@ -209,7 +209,7 @@ def overload(args) -> int:
     finally:
         service.stop()
     text = log.read_text()
-    record["log"] = {"tracebacks": text.count("Traceback"), "batcher_drained": "batcher drained" in text}
+    record["log"] = {"tracebacks": text.count("Traceback"), "batcher_drained": "batchers drained" in text}
     harness.write_record(args.out or harness.RESULTS / "overload.json", record)
     return 0
 

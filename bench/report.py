@@ -122,7 +122,7 @@ def overload(record: dict) -> list[str]:
         ["SIGTERM: requests in flight, their answers", f"{term['in_flight']} ({cell(term['in_flight_statuses'])})"],
         ["SIGTERM: exit code, seconds to exit", f"{term['exit_code']}, {term['exited_after_s']:.1f}"],
         [
-            "log: tracebacks, batcher drained",
+            "log: tracebacks, batchers drained",
             f"{record['log']['tracebacks']}, {cell(record['log']['batcher_drained'])}",
         ],
     ]
