@@ -134,6 +134,27 @@ def test_refinement_corrects_a_network_error_in_user_units(real_scans):
     assert result.fitness > 0.99
 
 
+def test_the_global_paths_starts_run_on_fewer_points_and_still_find_the_turn(real_scans, monkeypatch):
+    """Feature matching is made to fail, so the 24 rotated starts run: on STARTS_POINTS points per
+    cloud (a coarse answer each, which refinement settles), and the right start wins."""
+    from service import registration
+
+    monkeypatch.setattr(registration, "feature_match", lambda *args: (np.eye(3), np.zeros(3)))
+    shapes = []
+
+    async def recorded(source_n, target_n):  # the oracle's answer, without its check of a whole cloud's centring
+        shapes.append((source_n.shape, target_n.shape))
+        return Prediction(*kabsch(source_n.astype(np.float64), target_n.astype(np.float64)))
+
+    source = real_scans["kitti_000008_fov"]
+    target = apply_transform(source, euler_to_matrix([150.0, 40.0, -70.0]), TRUE_TRANSLATION)
+    result = register(source, target, 768, recorded, method="global")
+    starts = registration.STARTS_POINTS
+    assert shapes == [((starts, 3), (starts, 3))] * 24
+    assert result.stage == "multistart" and result.verified
+    assert rotation_angle_deg(result.rotation, euler_to_matrix([150.0, 40.0, -70.0])) < 0.01
+
+
 @pytest.mark.parametrize("method", ["ifnet", "auto"])
 def test_a_pairs_clouds_are_made_ready_for_refinement_once(real_scans, monkeypatch, method):
     """Coarse and fine refinement and the check (and under auto, feature matching's refinement
