@@ -279,6 +279,13 @@ def _finish_features(prepared: _Prepared, model: str, options: RegistrationOptio
     return _result(prepared, chosen, "features", model, options, timings)
 
 
+def _starts(prepared: _Prepared) -> tuple[list[np.ndarray], np.ndarray]:
+    """The starts' network inputs: the source turned by each start, and the target, each sampled
+    down to STARTS_POINTS."""
+    source, target = (at_most(cloud, STARTS_POINTS) for cloud in (prepared.source_network, prepared.target_network))
+    return [source @ start.T.astype(np.float32) for start in STARTS], target
+
+
 def _finish_multistart(
     prepared: _Prepared, predictions: list[Prediction], model: str, options: RegistrationOptions
 ) -> list[RegistrationResult]:
@@ -354,8 +361,7 @@ async def register_clouds(
     features = await run_blocking(_finish_features, base, first.model, options)
     answers.append(features)
     if not any(answer.verified for answer in answers):
-        source, target = (at_most(cloud, STARTS_POINTS) for cloud in (base.source_network, base.target_network))
-        turned = [source @ start.T.astype(np.float32) for start in STARTS]
+        turned, target = await run_blocking(_starts, base)
         predictions = await asyncio.gather(*(first.predict(cloud, target) for cloud in turned))
         answers += await run_blocking(_finish_multistart, base, list(predictions), first.model, options)
     # `ifnet` answers with the network, whatever else fits; the other stages only judge it.
