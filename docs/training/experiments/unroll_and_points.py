@@ -18,7 +18,7 @@ import numpy as np
 import torch
 
 from model.checkpoint import load_checkpoint
-from model.geometry import farthest_point_sample, refine, rotation_angle_deg
+from model.geometry import at_most, refine, rotation_angle_deg
 from model.training.data import Protocol, load_split, make_pair
 
 VARIANTS = [(3, 3, 768), (2, 3, 768), (3, 2, 768), (1, 3, 768), (2, 2, 768), (3, 3, 512), (2, 3, 512), (3, 3, 384)]
@@ -40,9 +40,7 @@ def main() -> None:
         for noise, pairs in sets.items():
             alone, refined, seconds = [], [], []
             for pair in pairs:
-                source, target = pair["source"], pair["target"]
-                if points < len(source):
-                    source, target = (cloud[farthest_point_sample(cloud, points)] for cloud in (source, target))
+                source, target = at_most(pair["source"], points), at_most(pair["target"], points)
                 started = time.perf_counter()
                 with torch.no_grad():
                     out = model(torch.from_numpy(source)[None], torch.from_numpy(target)[None])
