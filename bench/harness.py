@@ -22,6 +22,7 @@ import httpx
 import numpy as np
 from scipy.spatial import cKDTree
 
+from model.artifacts import network_points
 from model.geometry import (
     Normalisation,
     from_matrix,
@@ -126,7 +127,7 @@ class Network:
         from service.settings import Settings
 
         self.session = onnx_session(path, threads)
-        self.points = int(self.session.get_modelmeta().custom_metadata_map.get("num_points", 768))
+        self.points = network_points(self.session)
         self.fps_cap = Settings().fps_max_input_points
 
     def _sample(self, points: np.ndarray) -> np.ndarray:

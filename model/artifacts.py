@@ -26,3 +26,9 @@ def ort_session(path: Path, threads: int = 2):
     options.intra_op_num_threads = threads
     options.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
     return ort.InferenceSession(str(path), options, providers=["CPUExecutionProvider"])
+
+
+def network_points(session) -> int:
+    """The point count a session's network was trained at (its `num_points` metadata; 768 for files
+    exported before it was recorded): clouds are sampled down to it."""
+    return int(session.get_modelmeta().custom_metadata_map.get("num_points", 768))

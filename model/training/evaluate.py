@@ -48,14 +48,14 @@ def network_runner(model_path: Path, threads: int) -> Registration:
     if not model_path.is_file():
         raise UserError(f"--model {model_path}: no such file (an .onnx export or .pt weights)")
     if model_path.suffix == ".onnx":
-        from model.artifacts import ort_session
+        from model.artifacts import network_points, ort_session
 
         try:
             session = ort_session(model_path, threads)
         except Exception as error:  # onnxruntime's own exception types
             raise UserError(f"--model {model_path}: ONNX Runtime cannot load it ({str(error)[:120]})") from None
 
-        points = int(session.get_modelmeta().custom_metadata_map.get("num_points", 768))
+        points = network_points(session)
 
         def run_onnx(source: np.ndarray, target: np.ndarray):
             source, target = at_most(source, points), at_most(target, points)
