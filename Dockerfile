@@ -62,7 +62,7 @@ RUN apt-get update \
  && useradd --system --uid 10001 --gid ifnet --home-dir /nonexistent --no-create-home --shell /usr/sbin/nologin ifnet
 
 COPY --from=build /opt/venv /opt/venv
-# The service package with its committed model repository (service/models/*.onnx).
+# The service package with its committed model repository (service/models/*.onnx and drafts/).
 # `model` contributes only its torch-free modules (the network itself needs torch and stays out).
 COPY service /opt/app/service
 COPY model/__init__.py model/geometry.py model/artifacts.py /opt/app/model/

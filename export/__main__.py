@@ -4,6 +4,7 @@ python -m export                                   # shipped weights -> service/
 python -m export --weights runs/fast/checkpoint.pt --output /tmp/ifnet.onnx
 python -m export --iterations 6 --output /tmp/ifnet-6.onnx  # 3 time steps x 6 iterations
 python -m export --time-steps 2 --iterations 4 --output /tmp/ifnet-2x4.onnx
+python -m export --time-steps 1 --iterations 1 --points 384 --output service/models/drafts/object.onnx  # a draft
 """
 
 import argparse
@@ -43,6 +44,12 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
         default=None,
         help="passes over the iterations, each fed back the last pass's target features (default: as trained)",
     )
+    parser.add_argument(
+        "--points",
+        type=positive_int,
+        default=None,
+        help="native points per cloud recorded in the metadata, to which the service resamples (default: as trained)",
+    )
     parser.add_argument("--preset-name", default=None, help="recorded in the metadata (default: from the weights file)")
     parser.add_argument(
         "--check-pairs", type=positive_int, default=8, help="pairs compared between torch and ONNX Runtime"
@@ -62,7 +69,7 @@ def main(argv: list[str] | None = None) -> int:
         args.output.parent.mkdir(parents=True, exist_ok=True)
     except (FileExistsError, NotADirectoryError):
         raise UserError(f"--output {args.output}: a file stands where its folder would be") from None
-    model, weights_sha256, weights_preset = load_checkpoint(args.weights, args.iterations, args.time_steps)
+    model, weights_sha256, weights_preset = load_checkpoint(args.weights, args.iterations, args.time_steps, args.points)
     preset_name = args.preset_name or weights_preset
     n = model.config.num_points
     example = (torch.rand(1, n, 3) - 0.5, torch.rand(1, n, 3) - 0.5)

@@ -30,19 +30,22 @@ class LoadedWeights(NamedTuple):
     preset: str
 
 
-def load_checkpoint(path: Path, iterations: int | None = None, time_steps: int | None = None) -> LoadedWeights:
+def load_checkpoint(
+    path: Path, iterations: int | None = None, time_steps: int | None = None, num_points: int | None = None
+) -> LoadedWeights:
     """The model in eval mode from a training checkpoint or shipped weights, the file's sha256 and
     its preset.
 
     `iterations` and `time_steps` override the unroll the weights were trained with (`n_iters`
     blocks per time step, `time_steps` passes with the target features fed back): every block
     runs the same shared weights, so the weights run at any counts, and the cost grows with
-    their product.
+    their product. `num_points` overrides the native point count (the count the service
+    resamples each cloud to); the graph runs at any count from the config's `graph_k`.
     """
     state = read_weights(path, "weights file")
     config = IFNetConfig.from_dict(state["config"])
-    unroll = {"n_iters": iterations, "time_steps": time_steps}
-    config = replace(config, **{k: v for k, v in unroll.items() if v is not None})  # rejects counts below 1
+    overrides = {"n_iters": iterations, "time_steps": time_steps, "num_points": num_points}
+    config = replace(config, **{k: v for k, v in overrides.items() if v is not None})  # rejects counts below 1
     model = IFNet(config)
     model.load_state_dict(state["model"])
     return LoadedWeights(model.eval(), file_sha256(path), weights_preset(state))

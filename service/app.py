@@ -51,16 +51,17 @@ and `/v2/...` speaks the Open Inference Protocol.
 async def _become_ready(state: ServiceState) -> None:
     """Warm each model up at every batch size, one after another (their calls would contend for the
     CPUs), then start serving the queues and report ready."""
-    for name, model in state.models.items():
+    batchers = [batcher for model in state.models.values() for batcher in model.batchers]
+    for batcher in batchers:
         try:
             if state.settings.warmup:
-                await model.batcher.warm_up(model.info.network_points)
+                await batcher.warm_up(batcher.engine.info.network_points)
         except Exception as error:
-            state.warmup_error = f"warm-up of model {name} failed: {error}"
-            logger.exception("warm-up of model %s failed; the service stays not ready", name)
+            state.warmup_error = f"warm-up of model {batcher.model} failed: {error}"
+            logger.exception("warm-up of model %s failed; the service stays not ready", batcher.model)
             return
-    for model in state.models.values():
-        model.batcher.start()
+    for batcher in batchers:
+        batcher.start()
     state.ready.set()
     state.metrics.ready.set(1)
 
@@ -83,7 +84,8 @@ def _lifespan(engines: list[Engine] | None):
             state.metrics.ready.set(0)
             becoming_ready.cancel()
             await asyncio.wait({becoming_ready})
-            await asyncio.gather(*(model.batcher.close(settings.shutdown_timeout_s) for model in state.models.values()))
+            batchers = [batcher for model in state.models.values() for batcher in model.batchers]
+            await asyncio.gather(*(batcher.close(settings.shutdown_timeout_s) for batcher in batchers))
             logger.info("batchers drained; shutting down")
 
     return lifespan

@@ -23,6 +23,10 @@ REQUIRED_OUTPUTS = ("rotation", "translation")
 DEFAULT_NETWORK_POINTS = 768
 ORT_TO_V2_DATATYPE = {"tensor(float)": "FP32", "tensor(double)": "FP64", "tensor(int64)": "INT64"}
 DEFAULT_MODEL = "object"  # requests that name no model use it, and `auto` asks it first
+# A model's draft: the same weights unrolled over fewer blocks on fewer points, in this sub-folder of
+# the repository under the model's file name; `auto` asks it instead of the model, since refinement
+# settles its coarser answer as well (docs/refinement.md).
+DRAFTS = "drafts"
 
 
 class ModelLoadError(RuntimeError):
@@ -127,9 +131,15 @@ class OnnxEngine:
     """
 
     def __init__(
-        self, path: Path, threads: int | None = None, model_calls: int = 1, running: RunningCalls | None = None
+        self,
+        path: Path,
+        threads: int | None = None,
+        model_calls: int = 1,
+        running: RunningCalls | None = None,
+        name: str | None = None,
     ):
         path = Path(path)
+        self.draft: OnnxEngine | None = None  # the model's draft (`load_models` sets it), asked by `auto`
         if not path.is_file():
             raise ModelLoadError(
                 f"model file {path} does not exist: set IFNET_MODEL_PATH (or --model-path) to an IFNet ONNX export"
@@ -167,7 +177,7 @@ class OnnxEngine:
         # Without the record, only the count the network was exported for is known to run.
         fewest = _metadata_count(metadata, "min_points", path, native, "giving it clouds of at least")
         self.info = ModelInfo(
-            name=path.stem,
+            name=name or path.stem,
             network_points=native,
             min_network_points=fewest,
             file_sha256=file_sha256(path),
@@ -254,11 +264,34 @@ def model_files(settings: Settings) -> list[Path]:
     return files
 
 
+def draft_file(model_file: Path) -> Path:
+    """Where a model's draft lives: `drafts/<model's file name>` beside the model's file."""
+    return model_file.parent / DRAFTS / model_file.name
+
+
 def load_models(settings: Settings) -> list[OnnxEngine]:
-    """One engine per model file, in `model_files`' order, all or none: the first file that fails
-    raises ModelLoadError with its path and reason. The engines share one count of running calls."""
+    """One engine per model file, in `model_files`' order, each with its draft's engine when the
+    repository has one, all or none: the first file that fails raises ModelLoadError with its path
+    and reason, as does a draft of no model. The engines share one count of running calls."""
     running = RunningCalls()
-    return [OnnxEngine(path, settings.threads, settings.model_calls, running) for path in model_files(settings)]
+    files = model_files(settings)
+    engines = []
+    for path in files:
+        engine = OnnxEngine(path, settings.threads, settings.model_calls, running)
+        if draft_file(path).is_file():
+            name = f"{engine.info.name}/draft"  # its label in the batcher's metrics
+            engine.draft = OnnxEngine(draft_file(path), settings.threads, settings.model_calls, running, name)
+        engines.append(engine)
+    if settings.model_path is None:
+        strays = sorted(
+            {path.name for path in (settings.model_repository / DRAFTS).glob("*.onnx")} - {f.name for f in files}
+        )
+        if strays:
+            raise ModelLoadError(
+                f"model repository {settings.model_repository}: {DRAFTS}/ holds {strays}, drafts of no model: "
+                f"add the model beside them or remove them"
+            )
+    return engines
 
 
 def warm_up_engine(engine: Engine, batch_sizes: range | list[int], network_points: int) -> None:

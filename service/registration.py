@@ -6,8 +6,11 @@ centres each and scales both by one common factor to the network's radius
 (`model.geometry.NETWORK_RADIUS`), asks the model (any async callable) for the transform between
 the normalised clouds, maps it back into the user's units, composes it with the initial guess,
 optionally refines it (GICP on the full clouds) and checks it (`model.geometry.verify_alignment`).
-Where the method allows and the answer fails the check, the other models' networks follow in turn,
-then the global path: feature matching, then the first network from rotated starts.
+Under `auto` each model's draft network (the same weights over fewer blocks and points, when the
+repository has one) stands in for it, its answer always refined. Where the method allows and the
+answer fails the check, the other models' networks follow in turn, then the global path: feature
+matching (also a second opinion on a verified answer), then the first
+network (its draft, when it has one) from rotated starts.
 `register_pairs` runs a request's pairs through it and the models' batchers.
 """
 
@@ -62,7 +65,7 @@ STARTS_REFINED = 3
 STARTS_POINTS = 384
 AGREEMENT_DEG = 5.0  # two fitting answers further apart than this contradict each other
 RIVAL_FITNESS_MARGIN = 0.05  # an unverified answer fitting within this of a verified one also contradicts it
-Stage = Literal["ifnet", "multistart", "features"]
+Stage = Literal["ifnet", "draft", "multistart", "features"]
 
 T = TypeVar("T")
 Predict = Callable[[np.ndarray, np.ndarray], Awaitable[Prediction]]
@@ -84,6 +87,8 @@ class Network:
     model: str  # the model's name
     network_points: int  # points per cloud it is given
     predict: Predict  # normalised clouds -> transform (in production: the model's batcher)
+    stage: Stage = "ifnet"  # "draft" for a model's draft network
+    draft: "Network | None" = None  # asked instead of this one by `auto` and the global path's starts
 
 
 @dataclass(frozen=True)
@@ -257,24 +262,40 @@ def _result(
 
 
 def _finish(
-    prepared: _Prepared, prediction: Prediction, model: str, options: RegistrationOptions
+    prepared: _Prepared, prediction: Prediction, network: Network, options: RegistrationOptions
 ) -> RegistrationResult:
-    """The network's answer, refined if asked, and checked."""
+    """The network's answer, refined if asked (always, for a draft's coarse answer), and checked."""
     started = time.perf_counter()
     rotation, translation = _user_transform(prepared, prediction, np.eye(3))
-    chosen = _checked(prepared, rotation, translation, options.refine)
+    refine_options = options.refine or (RefineOptions() if network.stage == "draft" else None)
+    chosen = _checked(prepared, rotation, translation, refine_options)
     timings = _model_timings([prediction]) | {"postprocess_ms": (time.perf_counter() - started) * 1000.0}
-    return _result(prepared, chosen, "ifnet", model, options, timings)
+    return _result(prepared, chosen, network.stage, network.model, options, timings)
 
 
-def _finish_features(prepared: _Prepared, model: str, options: RegistrationOptions) -> RegistrationResult:
-    """Feature matching (KISS-Matcher), whatever the rotation, refined and checked."""
+@dataclass(frozen=True)
+class _FeatureGuess:
+    rotation: np.ndarray
+    translation: np.ndarray
+    seconds: float
+
+
+def _feature_guess(prepared: _Prepared) -> _FeatureGuess:
+    """Feature matching (KISS-Matcher), whatever the rotation: a coarse answer."""
     started = time.perf_counter()
     # KISS-Matcher holds the interpreter lock for its whole run: it gets a smaller subset.
     source, target = (subset(cloud, FEATURE_MAX_POINTS) for cloud in (prepared.check.source, prepared.check.target))
     rotation, translation = feature_match(source, target, prepared.check.spacing)
-    chosen = _checked(prepared, rotation, translation, options.refine or RefineOptions())  # a coarse answer
-    postprocess_ms = (time.perf_counter() - started) * 1000.0
+    return _FeatureGuess(rotation, translation, time.perf_counter() - started)
+
+
+def _finish_features(
+    prepared: _Prepared, guess: _FeatureGuess, model: str, options: RegistrationOptions
+) -> RegistrationResult:
+    """Feature matching's answer, refined and checked."""
+    started = time.perf_counter()
+    chosen = _checked(prepared, guess.rotation, guess.translation, options.refine or RefineOptions())
+    postprocess_ms = (time.perf_counter() - started + guess.seconds) * 1000.0
     timings = {"queue_ms": 0.0, "inference_ms": 0.0, "batch_size": 0, "postprocess_ms": postprocess_ms}
     return _result(prepared, chosen, "features", model, options, timings)
 
@@ -334,35 +355,41 @@ async def register_clouds(
     `options.method` must be set (`resolve_options`). Each network's `predict` receives the two
     normalised float32 clouds [network_points, 3] and returns the transform between them.
     `options.method` picks the path: the first network (`ifnet`), the global search with the first
-    network (`global`), or the networks in turn until an answer passes the check and, when none
-    does, the global search (`auto`). The CPU-heavy steps run through `run_blocking` (a worker
-    thread by default) so that the event loop keeps serving. Raises InvalidInput for clouds that
-    cannot be registered.
+    network (`global`), or the networks in turn (each model's draft where it has one) until an answer
+    passes the check and, when none does, the global search (`auto`). The CPU-heavy steps run
+    through `run_blocking` (a worker thread by default) so that the event loop keeps serving. Raises
+    InvalidInput for clouds that cannot be registered.
     """
     first = networks[0]
-    prepared = {
-        first.network_points: await run_blocking(_prepare, source, target, first.network_points, options, settings)
-    }
+    asked = [network.draft or network for network in networks] if options.method == "auto" else networks[:1]
+    count = asked[0].network_points
+    prepared = {count: await run_blocking(_prepare, source, target, count, options, settings)}
+    # The global path runs on the first clouds prepared: the check's clouds are the same for every count.
+    base = prepared[count]
     answers = []
     if options.method != "global":
-        for network in networks if options.method == "auto" else networks[:1]:
+        for network in asked:
             count = network.network_points
             if count not in prepared:  # a model exported for another point count
                 prepared[count] = await run_blocking(_prepare, source, target, count, options, settings)
             prediction = await network.predict(prepared[count].source_network, prepared[count].target_network)
-            answers.append(await run_blocking(_finish, prepared[count], prediction, network.model, options))
+            answers.append(await run_blocking(_finish, prepared[count], prediction, network, options))
             if answers[-1].verified:
                 break
         if not answers[0].verified and options.method == "ifnet":
             return answers[0]
-    # The global path runs on the first network's clouds: the check's clouds are the same for every count.
-    base = prepared[first.network_points]
     # Feature matching: the global path's cheapest stage, and a second opinion on a verified answer.
-    features = await run_blocking(_finish_features, base, first.model, options)
-    answers.append(features)
+    features = await run_blocking(_feature_guess, base)
+    settled = [answer for answer in answers if answer.verified]
+    if settled and rotation_angle_deg(settled[0].rotation, features.rotation) <= AGREEMENT_DEG:
+        # It agrees with the verified answer: nothing to refine or judge. Its time still counts.
+        settled[0].timings_ms["postprocess_ms"] += features.seconds * 1000.0
+    else:
+        answers.append(await run_blocking(_finish_features, base, features, first.model, options))
     if not any(answer.verified for answer in answers):
+        starts = first.draft or first
         turned, target = await run_blocking(_starts, base)
-        predictions = await asyncio.gather(*(first.predict(cloud, target) for cloud in turned))
+        predictions = await asyncio.gather(*(starts.predict(cloud, target) for cloud in turned))
         answers += await run_blocking(_finish_multistart, base, list(predictions), first.model, options)
     # `ifnet` answers with the network, whatever else fits; the other stages only judge it.
     best = answers[0] if options.method == "ifnet" else max(answers, key=_rank)
@@ -413,7 +440,11 @@ def resolve_options(options: RegistrationOptions, service: ServiceState) -> tupl
             )
         # No wait limit of the batcher's own: the request's deadline bounds the whole request, and
         # cancelling it drops the pair from the queue.
-        networks.append(Network(info.name, count or info.network_points, model.batcher.submit))
+        draft = None
+        if model.draft is not None:
+            draft_points = count or model.draft.engine.info.network_points
+            draft = Network(info.name, draft_points, model.draft.submit, "draft")
+        networks.append(Network(info.name, count or info.network_points, model.batcher.submit, draft=draft))
     return options.model_copy(update={"method": method}), networks
 
 

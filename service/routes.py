@@ -132,7 +132,7 @@ async def health(service: Service) -> JSONResponse:
         detail=service.warmup_error,
         ready=service.ready.is_set(),
         uptime_s=time.monotonic() - service.started_at,
-        queue_depth=sum(model.batcher.queue_depth for model in service.models.values()),
+        queue_depth=sum(model.queue_depth for model in service.models.values()),
         in_flight=service.in_flight,
         latency=LatencySummary(**service.latency.summary()),
         models=[
@@ -140,7 +140,7 @@ async def health(service: Service) -> JSONResponse:
                 name=name,
                 version=model.info.version,
                 ready=service.ready.is_set(),
-                queue_depth=model.batcher.queue_depth,
+                queue_depth=model.queue_depth,
             )
             for name, model in service.models.items()
         ],

@@ -146,9 +146,10 @@ class RegistrationOptions(BaseModel):
     )
     method: Method | None = Field(
         None,
-        description="`ifnet`: the network's answer, checked. `global`: a search that handles any rotation (the network "
-        "from 24 rotated starts, then feature matching), checked. `auto`: the network, and the search when its answer "
-        "fails the check. Default: the service's `IFNET_DEFAULT_METHOD` (`auto` unless set).",
+        description="`ifnet`: the network's answer, checked. `global`: a search that handles any rotation (feature "
+        "matching, then the network from 24 rotated starts), checked. `auto`: the network (the model's draft where "
+        "it has one, always refined), and the search when its answer fails the check. Default: the service's "
+        "`IFNET_DEFAULT_METHOD` (`auto` unless set).",
     )
     sampling: Sampling = Field(
         "fps", description="Subsampling: deterministic farthest-point (`fps`) or seeded random (`random`)."
@@ -218,6 +219,12 @@ class Refinement(BaseModel):
     network_transform: Matrix4 = Field(description="The transform before refinement.")
 
 
+class DraftDescription(BaseModel):
+    version: str = Field(description="First 12 hex digits of the draft's weights' (or file's) SHA-256.")
+    network_points: int = Field(description="Points per cloud the draft is given.")
+    blocks: int | None = Field(description="Feedback Registration Blocks it unrolls (the model: 9).")
+
+
 class ModelDescription(BaseModel):
     model_config = ConfigDict(protected_namespaces=(), from_attributes=True)
 
@@ -227,6 +234,11 @@ class ModelDescription(BaseModel):
     file_sha256: str
     preset: str | None = None
     network_points: int = Field(description="Points per cloud the network was exported for (the default).")
+    draft: DraftDescription | None = Field(
+        None,
+        description="The model's draft network, which `method` `auto` asks instead of it: the same weights over "
+        "fewer blocks and points, whose coarser answer refinement settles.",
+    )
 
     @computed_field(description="The older name of `network_points`.", json_schema_extra={"deprecated": True})
     @property
@@ -303,8 +315,9 @@ class RegisterResponse(BaseModel):
         "and a refinement does not move it. False means do not trust it; `reason` says why."
     )
     reason: str | None = Field(None, description="Why the answer is not verified.")
-    stage: Literal["ifnet", "multistart", "features"] = Field(
-        description="What produced the answer: the network, the network from a rotated start, or feature matching."
+    stage: Literal["ifnet", "draft", "multistart", "features"] = Field(
+        description="What produced the answer: the network, the model's draft network (refined), the network from a "
+        "rotated start, or feature matching."
     )
     points: CloudPointCounts
     refinement: Refinement | None

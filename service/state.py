@@ -8,24 +8,40 @@ from dataclasses import dataclass
 from service.batcher import MicroBatcher
 from service.engine import Engine, ModelInfo
 from service.metrics import LatencyWindow, Metrics
-from service.schemas import ModelDescription
+from service.schemas import DraftDescription, ModelDescription
 from service.settings import Settings
 from service.validation import InvalidInput
 
 
 @dataclass(frozen=True)
 class ServedModel:
-    """One model of the repository: its engine and the batcher in front of it."""
+    """One model of the repository: its engine and the batcher in front of it, and its draft's."""
 
     engine: Engine
     batcher: MicroBatcher
+    draft: MicroBatcher | None  # in front of engine.draft
 
     @property
     def info(self) -> ModelInfo:
         return self.engine.info
 
+    @property
+    def batchers(self) -> list[MicroBatcher]:
+        return [self.batcher] if self.draft is None else [self.batcher, self.draft]
+
+    @property
+    def queue_depth(self) -> int:
+        return sum(batcher.queue_depth for batcher in self.batchers)
+
     def description(self) -> ModelDescription:
-        return ModelDescription.model_validate(self.info, from_attributes=True)
+        description = ModelDescription.model_validate(self.info)
+        if self.draft is None:
+            return description
+        info = self.draft.engine.info
+        config = info.config or {}
+        blocks = config["time_steps"] * config["n_iters"] if {"time_steps", "n_iters"} <= config.keys() else None
+        draft = DraftDescription(version=info.version, network_points=info.network_points, blocks=blocks)
+        return description.model_copy(update={"draft": draft})
 
 
 class ServiceState:
@@ -43,12 +59,14 @@ class ServiceState:
         self.large_json_parse = asyncio.Lock()  # see uploads.parse_json
 
     def serve(self, engines: list[Engine]) -> None:
-        """A batcher for each engine, in the engines' order (their model calls share `model_calls` slots),
-        and its metrics."""
+        """A batcher for each engine and its draft, in the engines' order (their model calls share
+        `model_calls` slots), and its metrics."""
         settings = self.settings
         slots = asyncio.Semaphore(settings.model_calls)
-        for engine in engines:
-            batcher = MicroBatcher(
+
+        def batcher(engine: Engine) -> MicroBatcher:
+            self.metrics.add_model(engine.info.name, engine.info.version, engine.info.network_points)
+            return MicroBatcher(
                 engine,
                 max_batch_size=settings.max_batch_size,
                 max_queue_size=settings.max_queue_size,
@@ -57,8 +75,11 @@ class ServiceState:
                 slots=slots,
                 metrics=self.metrics,
             )
-            self.models[engine.info.name] = ServedModel(engine, batcher)
-            self.metrics.add_model(engine.info.name, engine.info.version, engine.info.network_points)
+
+        for engine in engines:
+            draft = getattr(engine, "draft", None)  # OnnxEngine's; stand-in engines have none
+            draft = None if draft is None else batcher(draft)
+            self.models[engine.info.name] = ServedModel(engine, batcher(engine), draft)
 
     def model(self, name: str | None) -> ServedModel:
         """The model a request names, or the default (the first) when it names none."""

@@ -199,6 +199,24 @@ def test_committed_onnx_matches_committed_weights():
     assert report.max_angle_difference_deg <= 0.01, report
 
 
+@pytest.mark.slow
+@pytest.mark.parametrize("draft", sorted((SERVED_MODEL.parent / "drafts").glob("*.onnx")), ids=lambda path: path.stem)
+def test_each_committed_draft_is_its_models_weights_over_one_block(draft):
+    """A draft (service/models/drafts/NAME.onnx) runs the weights of the model NAME.onnx, one block
+    on 384 points per cloud, and computes what those weights compute over that unroll."""
+    draft_metadata = ort_session(draft).get_modelmeta().custom_metadata_map
+    model_metadata = ort_session(SERVED_MODEL.parent / draft.name).get_modelmeta().custom_metadata_map
+    assert draft_metadata["weights_sha256"] == model_metadata["weights_sha256"]
+    config = json.loads(draft_metadata["config"])
+    assert (config["time_steps"], config["n_iters"], config["num_points"]) == (1, 1, 384)
+    weights = next(
+        path for path in DEFAULT_WEIGHTS.parent.glob("*.pt") if file_sha256(path) == draft_metadata["weights_sha256"]
+    )
+    model = load_checkpoint(weights, iterations=1, time_steps=1).model
+    report = compare_with_torch(ort_session(draft), model, evaluation_pairs(4, seed=11))
+    assert report.passes(1e-3, 1e-3, 0.01), report
+
+
 @pytest.mark.skipif(not DEFAULT_WEIGHTS.exists(), reason="no shipped weights in the checkout")
 def test_more_iterations_run_the_same_block_longer():
     """The override changes only how often the shared block runs: the first time step's first
@@ -221,15 +239,16 @@ def test_export_command_records_the_unroll(tmp_path):
     from export.__main__ import main, parse_args
 
     output = tmp_path / "ifnet-2.onnx"
-    assert main(["--iterations", "2", "--time-steps", "1", "--output", str(output), "--check-pairs", "2"]) == 0
+    argv = ["--iterations", "2", "--time-steps", "1", "--points", "384", "--output", str(output), "--check-pairs", "2"]
+    assert main(argv) == 0
     metadata = ort_session(output).get_modelmeta().custom_metadata_map
     config = json.loads(metadata["config"])
-    assert (config["n_iters"], config["time_steps"]) == (2, 1)
+    assert (config["n_iters"], config["time_steps"], config["num_points"]) == (2, 1, 384)
     assert metadata["weights_sha256"] == file_sha256(DEFAULT_WEIGHTS)
     assert metadata["preset"] == torch.load(DEFAULT_WEIGHTS, weights_only=True)["preset"]
     exported = IFNetConfig.from_dict(config)
     assert (metadata["num_points"], metadata["min_points"]) == (str(exported.num_points), str(exported.graph_k))
-    for option in ("--iterations", "--time-steps"):
+    for option in ("--iterations", "--time-steps", "--points"):
         with pytest.raises(SystemExit):
             parse_args([option, "0"])
 

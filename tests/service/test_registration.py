@@ -25,7 +25,7 @@ from model.geometry import (
     to_matrix,
 )
 from service.batcher import Prediction
-from service.registration import RegistrationFailed, register_clouds, sample_indices
+from service.registration import Network, RegistrationFailed, register_clouds, sample_indices
 from service.schemas import RefineOptions
 from service.validation import InvalidInput, as_points, as_rigid_transform
 
@@ -153,6 +153,57 @@ def test_the_global_paths_starts_run_on_fewer_points_and_still_find_the_turn(rea
     assert shapes == [((starts, 3), (starts, 3))] * 24
     assert result.stage == "multistart" and result.verified
     assert rotation_angle_deg(result.rotation, euler_to_matrix([150.0, 40.0, -70.0])) < 0.01
+
+
+def test_auto_and_the_starts_ask_the_draft_and_ifnet_the_model(real_scans, monkeypatch):
+    """A model with a draft: `auto` asks the draft (at its points, refining its answer even unasked);
+    `global`'s 24 starts ask it too; `ifnet` asks the model."""
+    from service import registration
+
+    monkeypatch.setattr(registration, "feature_match", lambda *args: (np.eye(3), np.zeros(3)))  # the starts run
+    asked = []
+
+    def recorded(name):
+        async def predict(source_n, target_n):
+            asked.append((name, len(source_n)))
+            return Prediction(*kabsch(source_n.astype(np.float64), target_n.astype(np.float64)))
+
+        return predict
+
+    source = real_scans["kitti_000008_fov"]
+    turn = euler_to_matrix([150.0, 40.0, -70.0])
+    answers = {}
+    for method, target in [("auto", apply_transform(source, TRUE_ROTATION, TRUE_TRANSLATION)), ("global", None),
+                           ("ifnet", apply_transform(source, TRUE_ROTATION, TRUE_TRANSLATION))]:  # fmt: skip
+        target = apply_transform(source, turn, TRUE_TRANSLATION) if target is None else target
+        options, settings, _ = pipeline_inputs(None, None, method=method)
+        draft = Network("object", 384, recorded("draft"), "draft")
+        networks = [Network("object", 768, recorded("model"), draft=draft)]
+        answers[method] = asyncio.run(register_clouds(source, target, options, settings, networks))
+    assert asked == [("draft", 384)] + [("draft", registration.STARTS_POINTS)] * 24 + [("model", 768)]
+    assert (answers["auto"].stage, answers["auto"].verified) == ("draft", True)
+    assert answers["auto"].refinement is not None  # a draft's answer is always refined
+    assert (answers["global"].stage, answers["global"].verified) == ("multistart", True)
+    assert (answers["ifnet"].stage, answers["ifnet"].refinement) == ("ifnet", None)
+
+
+def test_feature_matching_that_agrees_with_a_verified_answer_is_not_refined_again(real_scans, monkeypatch):
+    """Its guess within AGREEMENT_DEG of the verified answer confirms it as it is; a guess further off
+    is refined and checked (here it then fits too poorly to contradict the answer)."""
+    from service import registration
+
+    checked, check = [], registration._checked
+    monkeypatch.setattr(registration, "_checked", lambda *args: checked.append(args[1]) or check(*args))
+    source = real_scans["kitti_000008_fov"]
+    target = apply_transform(source, TRUE_ROTATION, TRUE_TRANSLATION)
+    agreeing = register(source, target, 768, method="auto")
+    assert agreeing.verified and agreeing.stage == "ifnet" and len(checked) == 1
+    checked.clear()
+    turned = euler_to_matrix([90.0, 0.0, 0.0]) @ TRUE_ROTATION
+    monkeypatch.setattr(registration, "feature_match", lambda *args: (turned, TRUE_TRANSLATION))
+    disagreeing = register(source, target, 768, method="auto")
+    assert disagreeing.verified and disagreeing.stage == "ifnet" and len(checked) == 2
+    assert rotation_angle_deg(checked[1], turned) == pytest.approx(0.0, abs=1e-9)  # the guess, refined and checked
 
 
 @pytest.mark.parametrize("method", ["ifnet", "auto"])

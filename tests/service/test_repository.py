@@ -9,6 +9,7 @@ Two tiny models stand in for the scene models: `object` and `indoor`, the same g
 import asyncio
 import dataclasses
 import io
+import json
 import os
 import shutil
 import subprocess
@@ -40,11 +41,13 @@ def body(**options) -> dict:
     return {"source": SOURCE.tolist(), "target": TARGET.tolist(), **options}
 
 
-def with_points(path: Path, points: int) -> Path:
-    """The ONNX file at `path` with its `num_points` metadata set to `points`."""
+def with_points(path: Path, points: int, **config) -> Path:
+    """The ONNX file at `path` with its `num_points` metadata set to `points` (and its config's entries to `config`)."""
     onnx = pytest.importorskip("onnx")
     model = onnx.load(str(path))
-    next(prop for prop in model.metadata_props if prop.key == "num_points").value = str(points)
+    properties = {prop.key: prop for prop in model.metadata_props}
+    properties["num_points"].value = str(points)
+    properties["config"].value = json.dumps({**json.loads(properties["config"].value), **config})
     onnx.save(model, str(path))
     return path
 
@@ -230,6 +233,38 @@ async def test_auto_asks_the_other_models_when_the_first_answer_fails_the_check(
     assert metrics[answers] == 1
     inference = ("ifnet_inference_seconds_count", ("model", "indoor"))
     assert metrics[inference] == 1  # asked once, by auto; the named request never reached it
+
+
+# ---------------------------------------------------------------- drafts
+
+
+async def test_auto_asks_a_models_draft_and_refines_its_answer(serve, repository, tiny_model):
+    """`drafts/object.onnx` is `object`'s draft: `auto` asks it (its point count, refined even unasked),
+    `ifnet` the model itself; it is described with the model, counted under its own label, never listed."""
+    (repository / "drafts").mkdir()
+    with_points(shutil.copy(tiny_model, repository / "drafts" / "object.onnx"), INDOOR_POINTS, time_steps=1, n_iters=1)
+    async with serve(Settings(model_repository=repository)) as (app, client):
+        auto = (await client.post("/register", json=body(method="auto"))).json()
+        network = (await client.post("/register", json=body(method="ifnet"))).json()
+        listed = (await client.get("/v2/models")).json()
+        metrics = metric_values((await client.get("/metrics")).text)
+    assert (auto["model"]["name"], auto["stage"], auto["verified"]) == ("object", "draft", True)
+    assert auto["points"]["source"]["network_points"] == INDOOR_POINTS and auto["refinement"] is not None
+    np.testing.assert_allclose(auto["translation"], [0.3, -0.2, 0.1], atol=1e-4)
+    assert auto["model"]["draft"] == {"version": "0" * 12, "network_points": INDOOR_POINTS, "blocks": 1}
+    assert (network["stage"], network["points"]["source"]["network_points"]) == ("ifnet", TINY_MODEL_POINTS)
+    assert network["refinement"] is None
+    assert [model["name"] for model in listed["models"]] == ["object", "indoor"]
+    assert metrics[("ifnet_inference_seconds_count", ("model", "object/draft"))] == 1
+    assert metrics[("ifnet_inference_seconds_count", ("model", "object"))] == 1  # the ifnet request's
+    assert metrics[("ifnet_answers_total", ("model", "object"), ("stage", "draft"), ("verified", "true"))] == 1
+
+
+def test_a_draft_of_no_model_fails_the_whole_repository(repository, tiny_model):
+    (repository / "drafts").mkdir()
+    shutil.copy(tiny_model, repository / "drafts" / "outdoor.onnx")
+    with pytest.raises(ModelLoadError, match=r"drafts/ holds \['outdoor.onnx'\], drafts of no model"):
+        load_models(Settings(model_repository=repository, threads=1))
 
 
 # ---------------------------------------------------------------- health, metrics and the CPUs
