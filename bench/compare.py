@@ -6,6 +6,8 @@
         --request 'indoor={"model": "indoor", "method": "ifnet"}'           # the paper's scene protocols
     python -m bench.compare peers --request auto='{"method": "auto", "refine": true}'   # one more service row
     python -m bench.compare models service/models/object.onnx /tmp/new.onnx    # ONNX files: time and accuracy
+    python -m bench.compare models service/models/object.onnx service/models/drafts/object.onnx --refine \
+        --sets same:clean same:jitter same:outliers unseen:clean                # and after refinement
 
 Every method meets every pair, in an order rotated from pair to pair; a method's time is read as
 its per-pair ratio to each peer (median over the pairs), since the machine's speed drifts.
@@ -22,6 +24,8 @@ import httpx
 import numpy as np
 
 from bench import harness
+from model.geometry import REFINE_SPACINGS, AlignmentClouds
+from service.registration import COARSE_DISTANCE_NORMALISED
 
 DEFAULT_SCANS = (
     "real_scans/pcl_office1",
@@ -203,32 +207,57 @@ def peers(args) -> int:
 
 
 def models(args) -> int:
-    """Two or more ONNX files on the same ModelNet pairs (clean and jittered), called in turn, the
-    order rotated pair by pair: each file's time as its median per-pair ratio to the first file's,
-    and its rotation error alone on each set (mean and median, degrees)."""
+    """Two or more ONNX files on the same ModelNet pairs (`--sets`), called in turn, the order
+    rotated pair by pair: each file's time as its median per-pair ratio to the first file's, and its
+    rotation error alone on each set (mean and median, degrees); with `--refine`, also after the
+    service's coarse-to-fine GICP (mean, median, and the share of pairs right and verified)."""
     networks = [harness.Network(path, args.threads) for path in args.models]
-    sets = {noise: harness.modelnet_pairs(args.pairs, "same", noise, seed=args.seed) for noise in ("clean", "jitter")}
+    sets = {}
+    for spec in args.sets:
+        split, noise = spec.split(":")
+        sets[spec] = harness.modelnet_pairs(args.pairs, split, noise, seed=args.seed)
     ms = []
-    errors = {noise: [[] for _ in networks] for noise in sets}
-    for noise, pairs in sets.items():
+    errors = {spec: [[] for _ in networks] for spec in sets}
+    refined = {spec: [[] for _ in networks] for spec in sets}
+    for spec, pairs in sets.items():
         for k, pair in enumerate(pairs):
             prepared = [network.prepare(pair.source, pair.target) for network in networks]
+            clouds = AlignmentClouds(pair.source, pair.target) if args.refine else None
             row = np.zeros(len(networks))
             for i in np.roll(np.arange(len(networks)), k):
                 feeds, normalisation = prepared[i]
                 networks[i].call(feeds)  # warm: the first call of a new point count plans the graph
                 (rotation, translation), row[i] = timed(networks[i].call, feeds)
                 answer = networks[i].to_user_units(normalisation, rotation, translation)
-                errors[noise][i].append(harness.errors(pair, *answer)["rotation_deg"])
+                errors[spec][i].append(harness.errors(pair, *answer)["rotation_deg"])
+                if clouds is not None:
+                    refined[spec][i].append(refined_errors(pair, clouds, normalisation, answer))
             ms.append(row)
     ratios = np.median(np.array(ms) / np.array(ms)[:, :1], axis=0)
-    print(f"{len(ms)} ModelNet10 test pairs; time: median per-pair ratio to the first file; rotation error alone, deg")
+    print(f"{len(ms)} ModelNet test pairs; time: median per-pair ratio to the first file; rotation error, deg")
     for i, path in enumerate(args.models):
-        accuracy = "  ".join(
-            f"{noise} mean {np.mean(errors[noise][i]):.3f} median {np.median(errors[noise][i]):.3f}" for noise in sets
-        )
-        print(f"{ratios[i]:5.2f}x  {accuracy}  {path}")
+        print(f"{ratios[i]:5.2f}x  {path}")
+        for spec in sets:
+            line = f"    {spec:16s} alone mean {np.mean(errors[spec][i]):.3f} median {np.median(errors[spec][i]):.3f}"
+            if args.refine:
+                rows = np.array(refined[spec][i])
+                line += (
+                    f"  refined mean {rows[:, 0].mean():.3f} median {np.median(rows[:, 0]):.4f}"
+                    f"  right {rows[:, 1].mean():.2f}  verified {rows[:, 2].mean():.2f}  wrong and verified "
+                    f"{int((rows[:, 2] * (1 - rows[:, 1])).sum())}"
+                )
+            print(line)
     return 0
+
+
+def refined_errors(pair: harness.Pair, clouds: AlignmentClouds, normalisation, answer) -> tuple[float, float, float]:
+    """Rotation error, right, verified of an answer refined as the service refines it (coarse, then fine)."""
+    rotation, translation = answer
+    coarse = COARSE_DISTANCE_NORMALISED / normalisation.scale
+    for distance in (max(coarse, REFINE_SPACINGS * clouds.spacing), REFINE_SPACINGS * clouds.spacing):
+        rotation, translation, _ = clouds.refine(rotation, translation, distance)
+    found = harness.errors(pair, rotation, translation)
+    return found["rotation_deg"], float(found["right"]), float(clouds.verify(rotation, translation).verified)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -259,7 +288,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--out", type=Path, default=harness.RESULTS / "compare.json")
     m = commands.add_parser("models", help="ONNX files' calls interleaved on the same pairs: time and accuracy")
     m.add_argument("models", type=Path, nargs="+")
-    m.add_argument("--pairs", type=int, default=20, help="pairs per set (clean, jittered)")
+    m.add_argument("--pairs", type=int, default=20, help="pairs per set")
+    m.add_argument("--sets", nargs="+", default=["same:clean", "same:jitter"], help="split:noise sets")
+    m.add_argument("--refine", action="store_true", help="also the errors after the service's refinement")
     m.add_argument("--seed", type=int, default=0)
     args = parser.parse_args(argv)
     if args.command == "peers":

@@ -6,11 +6,11 @@ centres each and scales both by one common factor to the network's radius
 (`model.geometry.NETWORK_RADIUS`), asks the model (any async callable) for the transform between
 the normalised clouds, maps it back into the user's units, composes it with the initial guess,
 optionally refines it (GICP on the full clouds) and checks it (`model.geometry.verify_alignment`).
-Under `auto` each model's draft network (the same weights over fewer blocks and points, when the
-repository has one) stands in for it, its answer always refined. Where the method allows and the
-answer fails the check, the other models' networks follow in turn, then the global path: feature
-matching (also a second opinion on a verified answer), then the first
-network (its draft, when it has one) from rotated starts.
+Under `auto` the first model's draft network (the same weights over fewer blocks and points, when
+the repository has one) is asked before the model, its answer always refined; it stands only when
+it passes the check and feature matching agrees with it. Where the method allows and the answer
+fails the check, the other networks follow in turn, then the global path: feature matching (also
+a second opinion on a verified answer), then the first network from rotated starts.
 `register_pairs` runs a request's pairs through it and the models' batchers.
 """
 
@@ -88,7 +88,7 @@ class Network:
     network_points: int  # points per cloud it is given
     predict: Predict  # normalised clouds -> transform (in production: the model's batcher)
     stage: Stage = "ifnet"  # "draft" for a model's draft network
-    draft: "Network | None" = None  # asked instead of this one by `auto` and the global path's starts
+    draft: "Network | None" = None  # asked before this one by `auto`, when this one is asked first
 
 
 @dataclass(frozen=True)
@@ -161,7 +161,12 @@ class _Prepared:
 
 
 def _prepare(
-    source: np.ndarray, target: np.ndarray, count: int, options: RegistrationOptions, settings: Settings
+    source: np.ndarray,
+    target: np.ndarray,
+    count: int,
+    options: RegistrationOptions,
+    settings: Settings,
+    check: AlignmentClouds | None = None,
 ) -> _Prepared:
     started = time.perf_counter()
     clouds, sampled, reports = {}, {}, {}
@@ -173,7 +178,8 @@ def _prepare(
     init = np.eye(4) if options.init is None else options.init
     source_sampled = apply_transform(sampled["source"], *from_matrix(init))
     normalisation = Normalisation(source_sampled, sampled["target"])
-    check = AlignmentClouds(*(subset(clouds[name], CHECK_MAX_POINTS) for name in ("source", "target")))
+    if check is None:  # the same for every point count: built once per request
+        check = AlignmentClouds(*(subset(clouds[name], CHECK_MAX_POINTS) for name in ("source", "target")))
     return _Prepared(
         source=clouds["source"],
         target=clouds["target"],
@@ -355,31 +361,46 @@ async def register_clouds(
     `options.method` must be set (`resolve_options`). Each network's `predict` receives the two
     normalised float32 clouds [network_points, 3] and returns the transform between them.
     `options.method` picks the path: the first network (`ifnet`), the global search with the first
-    network (`global`), or the networks in turn (each model's draft where it has one) until an answer
+    network (`global`), or the networks in turn (the first one's draft before it) until an answer
     passes the check and, when none does, the global search (`auto`). The CPU-heavy steps run
     through `run_blocking` (a worker thread by default) so that the event loop keeps serving. Raises
     InvalidInput for clouds that cannot be registered.
     """
     first = networks[0]
-    asked = [network.draft or network for network in networks] if options.method == "auto" else networks[:1]
-    count = asked[0].network_points
+    auto = options.method == "auto"
+    count = (first.draft or first).network_points if auto else first.network_points
     prepared = {count: await run_blocking(_prepare, source, target, count, options, settings)}
     # The global path runs on the first clouds prepared: the check's clouds are the same for every count.
     base = prepared[count]
-    answers = []
+    answers: list[RegistrationResult] = []
+    discarded: list[RegistrationResult] = []  # an unconfirmed draft's answer: no candidate, but paid for
+    features: _FeatureGuess | None = None
+
+    async def ask(network: Network) -> RegistrationResult:
+        count = network.network_points
+        if count not in prepared:  # a model exported for another point count; the check's clouds are the same
+            prepared[count] = await run_blocking(_prepare, source, target, count, options, settings, base.check)
+        prediction = await network.predict(prepared[count].source_network, prepared[count].target_network)
+        return await run_blocking(_finish, prepared[count], prediction, network, options)
+
     if options.method != "global":
-        for network in asked:
-            count = network.network_points
-            if count not in prepared:  # a model exported for another point count
-                prepared[count] = await run_blocking(_prepare, source, target, count, options, settings)
-            prediction = await network.predict(prepared[count].source_network, prepared[count].target_network)
-            answers.append(await run_blocking(_finish, prepared[count], prediction, network, options))
+        if auto and first.draft is not None:
+            draft = await ask(first.draft)
+            if draft.verified:
+                features = await run_blocking(_feature_guess, base)
+                # A draft's answer stands only where feature matching, an independent method, agrees.
+                if rotation_angle_deg(draft.rotation, features.rotation) <= AGREEMENT_DEG:
+                    draft.timings_ms["postprocess_ms"] += features.seconds * 1000.0
+                    return draft
+            discarded.append(draft)
+        for network in networks if auto else networks[:1]:
+            answers.append(await ask(network))
             if answers[-1].verified:
                 break
         if not answers[0].verified and options.method == "ifnet":
             return answers[0]
     # Feature matching: the global path's cheapest stage, and a second opinion on a verified answer.
-    features = await run_blocking(_feature_guess, base)
+    features = features or await run_blocking(_feature_guess, base)
     settled = [answer for answer in answers if answer.verified]
     if settled and rotation_angle_deg(settled[0].rotation, features.rotation) <= AGREEMENT_DEG:
         # It agrees with the verified answer: nothing to refine or judge. Its time still counts.
@@ -387,18 +408,23 @@ async def register_clouds(
     else:
         answers.append(await run_blocking(_finish_features, base, features, first.model, options))
     if not any(answer.verified for answer in answers):
-        starts = first.draft or first
         turned, target = await run_blocking(_starts, base)
-        predictions = await asyncio.gather(*(starts.predict(cloud, target) for cloud in turned))
+        predictions = await asyncio.gather(*(first.predict(cloud, target) for cloud in turned))
         answers += await run_blocking(_finish_multistart, base, list(predictions), first.model, options)
     # `ifnet` answers with the network, whatever else fits; the other stages only judge it.
     best = answers[0] if options.method == "ifnet" else max(answers, key=_rank)
-    for answer in answers:  # the request paid for every stage that ran
-        if answer is not best:
-            for name in ("inference_ms", "postprocess_ms"):
-                best.timings_ms[name] += answer.timings_ms[name]
-            best.timings_ms["batch_size"] = max(best.timings_ms["batch_size"], answer.timings_ms["batch_size"])
-    return _unless_contradicted(best, answers)
+    return _unless_contradicted(
+        _with_paid(best, [answer for answer in answers if answer is not best] + discarded), answers
+    )
+
+
+def _with_paid(best: RegistrationResult, others: list[RegistrationResult]) -> RegistrationResult:
+    """The answer with the model calls and post-processing of every other stage that ran added to its timings."""
+    for answer in others:
+        for name in ("inference_ms", "postprocess_ms"):
+            best.timings_ms[name] += answer.timings_ms[name]
+        best.timings_ms["batch_size"] = max(best.timings_ms["batch_size"], answer.timings_ms["batch_size"])
+    return best
 
 
 def _unless_contradicted(best: RegistrationResult, answers: list[RegistrationResult]) -> RegistrationResult:

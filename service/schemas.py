@@ -147,8 +147,8 @@ class RegistrationOptions(BaseModel):
     method: Method | None = Field(
         None,
         description="`ifnet`: the network's answer, checked. `global`: a search that handles any rotation (feature "
-        "matching, then the network from 24 rotated starts), checked. `auto`: the network (the model's draft where "
-        "it has one, always refined), and the search when its answer fails the check. Default: the service's "
+        "matching, then the network from 24 rotated starts), checked. `auto`: the network (the model's draft first, "
+        "its answer always refined), and the search when their answers fail the check. Default: the service's "
         "`IFNET_DEFAULT_METHOD` (`auto` unless set).",
     )
     sampling: Sampling = Field(
@@ -236,8 +236,8 @@ class ModelDescription(BaseModel):
     network_points: int = Field(description="Points per cloud the network was exported for (the default).")
     draft: DraftDescription | None = Field(
         None,
-        description="The model's draft network, which `method` `auto` asks instead of it: the same weights over "
-        "fewer blocks and points, whose coarser answer refinement settles.",
+        description="The model's draft network, which `method` `auto` asks before it: the same weights over fewer "
+        "blocks and points, whose coarser answer is always refined.",
     )
 
     @computed_field(description="The older name of `network_points`.", json_schema_extra={"deprecated": True})

@@ -155,36 +155,54 @@ def test_the_global_paths_starts_run_on_fewer_points_and_still_find_the_turn(rea
     assert rotation_angle_deg(result.rotation, euler_to_matrix([150.0, 40.0, -70.0])) < 0.01
 
 
-def test_auto_and_the_starts_ask_the_draft_and_ifnet_the_model(real_scans, monkeypatch):
-    """A model with a draft: `auto` asks the draft (at its points, refining its answer even unasked);
-    `global`'s 24 starts ask it too; `ifnet` asks the model."""
+def test_auto_asks_the_draft_first_and_keeps_its_answer_only_where_feature_matching_agrees(real_scans, monkeypatch):
+    """A model with a draft: `auto` asks the draft (at its points, refining its answer even unasked)
+    and stops there when feature matching's guess agrees; when it does not, the model is asked as
+    if there were no draft; the other models' drafts are not asked. `global`'s 24 starts and `ifnet`
+    ask the model."""
     from service import registration
 
-    monkeypatch.setattr(registration, "feature_match", lambda *args: (np.eye(3), np.zeros(3)))  # the starts run
     asked = []
 
-    def recorded(name):
+    def recorded(name, turn=None):
         async def predict(source_n, target_n):
             asked.append((name, len(source_n)))
-            return Prediction(*kabsch(source_n.astype(np.float64), target_n.astype(np.float64)))
+            rotation, translation = kabsch(source_n.astype(np.float64), target_n.astype(np.float64))
+            rotation = rotation if turn is None else turn @ rotation
+            return Prediction(rotation, translation, inference_ms=1.0, batch_size=1)
 
         return predict
 
-    source = real_scans["kitti_000008_fov"]
-    turn = euler_to_matrix([150.0, 40.0, -70.0])
-    answers = {}
-    for method, target in [("auto", apply_transform(source, TRUE_ROTATION, TRUE_TRANSLATION)), ("global", None),
-                           ("ifnet", apply_transform(source, TRUE_ROTATION, TRUE_TRANSLATION))]:  # fmt: skip
-        target = apply_transform(source, turn, TRUE_TRANSLATION) if target is None else target
+    def run(method, target, first_turned=False):
         options, settings, _ = pipeline_inputs(None, None, method=method)
-        draft = Network("object", 384, recorded("draft"), "draft")
-        networks = [Network("object", 768, recorded("model"), draft=draft)]
-        answers[method] = asyncio.run(register_clouds(source, target, options, settings, networks))
-    assert asked == [("draft", 384)] + [("draft", registration.STARTS_POINTS)] * 24 + [("model", 768)]
-    assert (answers["auto"].stage, answers["auto"].verified) == ("draft", True)
-    assert answers["auto"].refinement is not None  # a draft's answer is always refined
-    assert (answers["global"].stage, answers["global"].verified) == ("multistart", True)
-    assert (answers["ifnet"].stage, answers["ifnet"].refinement) == ("ifnet", None)
+        turn = euler_to_matrix([90.0, 0.0, 0.0]) if first_turned else None
+        draft = Network("object", 384, recorded("draft", turn), "draft")
+        other_draft = Network("indoor", 384, recorded("indoor draft"), "draft")
+        networks = [Network("object", 768, recorded("model", turn), draft=draft)]
+        networks.append(Network("indoor", 768, recorded("indoor"), draft=other_draft))
+        asked.clear()
+        return asyncio.run(register_clouds(source, target, options, settings, networks))
+
+    source = real_scans["kitti_000008_fov"]
+    target = apply_transform(source, TRUE_ROTATION, TRUE_TRANSLATION)
+    confirmed = run("auto", target)
+    assert asked == [("draft", 384)] and (confirmed.stage, confirmed.verified) == ("draft", True)
+    assert confirmed.refinement is not None  # a draft's answer is always refined
+    assert rotation_angle_deg(confirmed.rotation, TRUE_ROTATION) < 0.01
+
+    monkeypatch.setattr(registration, "feature_match", lambda *args: (np.eye(3), np.zeros(3)))  # disagrees
+    unconfirmed = run("auto", target)
+    assert asked == [("draft", 384), ("model", 768)] and (unconfirmed.stage, unconfirmed.verified) == ("ifnet", True)
+    assert unconfirmed.timings_ms["inference_ms"] == 2.0  # the discarded draft's call was paid for too
+    other = run("auto", target, first_turned=True)  # only the first model's draft is asked
+    assert asked == [("draft", 384), ("model", 768), ("indoor", 768)] and (other.model, other.verified) == (
+        "indoor",
+        True,
+    )
+    searched = run("global", apply_transform(source, euler_to_matrix([150.0, 40.0, -70.0]), TRUE_TRANSLATION))
+    assert asked == [("model", registration.STARTS_POINTS)] * 24 and searched.stage == "multistart"
+    network = run("ifnet", target)
+    assert asked == [("model", 768)] and (network.stage, network.refinement) == ("ifnet", None)
 
 
 def test_feature_matching_that_agrees_with_a_verified_answer_is_not_refined_again(real_scans, monkeypatch):

@@ -238,9 +238,13 @@ async def test_auto_asks_the_other_models_when_the_first_answer_fails_the_check(
 # ---------------------------------------------------------------- drafts
 
 
-async def test_auto_asks_a_models_draft_and_refines_its_answer(serve, repository, tiny_model):
+async def test_auto_asks_a_models_draft_and_refines_its_answer(serve, repository, tiny_model, monkeypatch):
     """`drafts/object.onnx` is `object`'s draft: `auto` asks it (its point count, refined even unasked),
     `ifnet` the model itself; it is described with the model, counted under its own label, never listed."""
+    from service import registration
+
+    # Feature matching agrees with the draft (it finds no features on these random clouds).
+    monkeypatch.setattr(registration, "feature_match", lambda *args: (np.eye(3), np.array([0.3, -0.2, 0.1])))
     (repository / "drafts").mkdir()
     with_points(shutil.copy(tiny_model, repository / "drafts" / "object.onnx"), INDOOR_POINTS, time_steps=1, n_iters=1)
     async with serve(Settings(model_repository=repository)) as (app, client):
@@ -258,6 +262,24 @@ async def test_auto_asks_a_models_draft_and_refines_its_answer(serve, repository
     assert metrics[("ifnet_inference_seconds_count", ("model", "object/draft"))] == 1
     assert metrics[("ifnet_inference_seconds_count", ("model", "object"))] == 1  # the ifnet request's
     assert metrics[("ifnet_answers_total", ("model", "object"), ("stage", "draft"), ("verified", "true"))] == 1
+
+
+async def test_when_the_drafts_answer_fails_the_check_auto_asks_the_model(serve, repository, tiny_model):
+    (repository / "drafts").mkdir()
+    draft_file = with_points(shutil.copy(tiny_model, repository / "drafts" / "object.onnx"), INDOOR_POINTS)
+    engine = OnnxEngine(repository / "object.onnx", threads=1)
+    engine.draft = Turned(OnnxEngine(draft_file, threads=1, name="object/draft"))
+    engines = [engine, OnnxEngine(repository / "indoor.onnx", threads=1)]
+    async with serve(Settings(model_repository=repository, warmup=False), engines=engines) as (app, client):
+        auto = (await client.post("/register", json=body(method="auto"))).json()
+        metrics = metric_values((await client.get("/metrics")).text)
+    assert (auto["model"]["name"], auto["stage"], auto["verified"]) == ("object", "ifnet", True)
+    assert auto["points"]["source"]["network_points"] == TINY_MODEL_POINTS
+    for model in ("object/draft", "object"):
+        assert metrics[("ifnet_inference_seconds_count", ("model", model))] == 1
+    assert (
+        metrics[("ifnet_inference_seconds_count", ("model", "indoor"))] == 0
+    )  # the first verified answer ends the turn
 
 
 def test_a_draft_of_no_model_fails_the_whole_repository(repository, tiny_model):
