@@ -207,15 +207,18 @@ def peers(args) -> int:
 
 
 def models(args) -> int:
-    """Two or more ONNX files on the same ModelNet pairs (`--sets`), called in turn, the order
+    """Two or more ONNX files on the same pairs (`--sets`), called in turn, the order
     rotated pair by pair: each file's time as its median per-pair ratio to the first file's, and its
     rotation error alone on each set (mean and median, degrees); with `--refine`, also after the
     service's coarse-to-fine GICP (mean, median, and the share of pairs right and verified)."""
     networks = [harness.Network(path, args.threads) for path in args.models]
     sets = {}
     for spec in args.sets:
-        split, noise = spec.split(":")
-        sets[spec] = harness.modelnet_pairs(args.pairs, split, noise, seed=args.seed)
+        if spec.split(":")[0] in ("indoor", "outdoor"):  # every held-out scan's pair, whatever --pairs says
+            sets[spec] = harness.scene_pairs(spec.split(":")[0], seed=args.seed, shared=spec.endswith(":shared"))
+        else:
+            split, noise = spec.split(":")
+            sets[spec] = harness.modelnet_pairs(args.pairs, split, noise, seed=args.seed)
     ms = []
     errors = {spec: [[] for _ in networks] for spec in sets}
     refined = {spec: [[] for _ in networks] for spec in sets}
@@ -234,7 +237,7 @@ def models(args) -> int:
                     refined[spec][i].append(refined_errors(pair, clouds, normalisation, answer))
             ms.append(row)
     ratios = np.median(np.array(ms) / np.array(ms)[:, :1], axis=0)
-    print(f"{len(ms)} ModelNet test pairs; time: median per-pair ratio to the first file; rotation error, deg")
+    print(f"{len(ms)} pairs; time: median per-pair ratio to the first file; rotation error, deg")
     for i, path in enumerate(args.models):
         print(f"{ratios[i]:5.2f}x  {path}")
         for spec in sets:
@@ -289,7 +292,12 @@ def main(argv: list[str] | None = None) -> int:
     m = commands.add_parser("models", help="ONNX files' calls interleaved on the same pairs: time and accuracy")
     m.add_argument("models", type=Path, nargs="+")
     m.add_argument("--pairs", type=int, default=20, help="pairs per set")
-    m.add_argument("--sets", nargs="+", default=["same:clean", "same:jitter"], help="split:noise sets")
+    m.add_argument(
+        "--sets",
+        nargs="+",
+        default=["same:clean", "same:jitter"],
+        help="ModelNet split:noise sets, or a scene domain's held-out pairs (indoor, outdoor, indoor:shared, ...)",
+    )
     m.add_argument("--refine", action="store_true", help="also the errors after the service's refinement")
     m.add_argument("--seed", type=int, default=0)
     args = parser.parse_args(argv)
