@@ -24,8 +24,7 @@ DEFAULT_NETWORK_POINTS = 768
 ORT_TO_V2_DATATYPE = {"tensor(float)": "FP32", "tensor(double)": "FP64", "tensor(int64)": "INT64"}
 DEFAULT_MODEL = "object"  # requests that name no model use it, and `auto` asks it first
 # A model's draft: the same weights unrolled over fewer blocks on fewer points, in this sub-folder of
-# the repository under the model's file name; `auto` asks it instead of the model, since refinement
-# settles its coarser answer as well (docs/refinement.md).
+# the repository under the model's file name; `auto` asks it before the model (service/README.md, "Models").
 DRAFTS = "drafts"
 
 

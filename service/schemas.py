@@ -147,8 +147,8 @@ class RegistrationOptions(BaseModel):
     method: Method | None = Field(
         None,
         description="`ifnet`: the network's answer, checked. `global`: a search that handles any rotation (feature "
-        "matching, then the network from 24 rotated starts), checked. `auto`: the network (the model's draft first, "
-        "its answer always refined), and the search when their answers fail the check. Default: the service's "
+        "matching, then the network from 24 rotated starts), checked. `auto`: the network (its draft first, refined, "
+        "kept where feature matching agrees), and the search when no answer passes the check. Default: the service's "
         "`IFNET_DEFAULT_METHOD` (`auto` unless set).",
     )
     sampling: Sampling = Field(
