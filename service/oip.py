@@ -96,7 +96,8 @@ async def model_ready(model_name: ModelName, service: LoadedService) -> JSONResp
 
 @router.get("/models/{model_name}", response_model=V2ModelMetadata, responses=_ERRORS, summary="Model metadata")
 async def model_metadata(model_name: ModelName, service: LoadedService) -> V2ModelMetadata:
-    info = _served(model_name, service).info
+    served = _served(model_name, service)
+    info, draft = served.info, served.description().draft
     return V2ModelMetadata(
         name=info.name,
         versions=[info.version],
@@ -108,6 +109,7 @@ async def model_metadata(model_name: ModelName, service: LoadedService) -> V2Mod
             "preset": info.preset,
             "weights_sha256": info.weights_sha256,
             "file_sha256": info.file_sha256,
+            "draft": None if draft is None else draft.model_dump(),
             "units": "inputs and translation in the caller's units; clouds are normalised server-side",
         },
     )

@@ -251,11 +251,14 @@ async def test_auto_asks_a_models_draft_and_refines_its_answer(serve, repository
         auto = (await client.post("/register", json=body(method="auto"))).json()
         network = (await client.post("/register", json=body(method="ifnet"))).json()
         listed = (await client.get("/v2/models")).json()
+        described = (await client.get("/v2/models/object")).json()["parameters"]["draft"]
+        no_draft = (await client.get("/v2/models/indoor")).json()["parameters"]["draft"]
         metrics = metric_values((await client.get("/metrics")).text)
     assert (auto["model"]["name"], auto["stage"], auto["verified"]) == ("object", "draft", True)
     assert auto["points"]["source"]["network_points"] == INDOOR_POINTS and auto["refinement"] is not None
     np.testing.assert_allclose(auto["translation"], [0.3, -0.2, 0.1], atol=1e-4)
-    assert auto["model"]["draft"] == {"version": "0" * 12, "network_points": INDOOR_POINTS, "blocks": 1}
+    assert auto["model"]["draft"] == described == {"version": "0" * 12, "network_points": INDOOR_POINTS, "blocks": 1}
+    assert no_draft is None
     assert (network["stage"], network["points"]["source"]["network_points"]) == ("ifnet", TINY_MODEL_POINTS)
     assert network["refinement"] is None
     assert [model["name"] for model in listed["models"]] == ["object", "indoor"]
