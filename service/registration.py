@@ -64,6 +64,9 @@ STARTS_REFINED = 3
 # each call costs about 0.4x one at the network's 768 points.
 STARTS_POINTS = 384
 AGREEMENT_DEG = 5.0  # two fitting answers further apart than this contradict each other
+# A draft's answer further than this from feature matching's guess is set aside unrefined: refinement
+# would not bring the two within AGREEMENT_DEG (a draft's answer is 4-15 deg off on ModelNet, median).
+DRAFT_REACH_DEG = 30.0
 RIVAL_FITNESS_MARGIN = 0.05  # an unverified answer fitting within this of a verified one also contradicts it
 Stage = Literal["ifnet", "draft", "multistart", "features"]
 
@@ -373,7 +376,7 @@ async def register_clouds(
     # The global path runs on the first clouds prepared: the check's clouds are the same for every count.
     base = prepared[count]
     answers: list[RegistrationResult] = []
-    discarded: list[RegistrationResult] = []  # an unconfirmed draft's answer: no candidate, but paid for
+    discarded: list[dict[str, float]] = []  # the timings of an unconfirmed draft's answer: no candidate, but paid for
     features: _FeatureGuess | None = None
 
     async def ask(network: Network) -> RegistrationResult:
@@ -385,14 +388,19 @@ async def register_clouds(
 
     if options.method != "global":
         if auto and first.draft is not None:
-            draft = await ask(first.draft)
-            if draft.verified:
-                features = await run_blocking(_feature_guess, base)
-                # A draft's answer stands only where feature matching, an independent method, agrees.
-                if rotation_angle_deg(draft.rotation, features.rotation) <= AGREEMENT_DEG:
+            # A draft's answer stands only where feature matching, an independent method, agrees; the
+            # guess is needed on every path of `auto`, so it comes first and spares refining a draft
+            # answer too far from it to end up agreeing.
+            features = await run_blocking(_feature_guess, base)
+            prediction = await first.draft.predict(base.source_network, base.target_network)
+            if rotation_angle_deg(_user_transform(base, prediction, np.eye(3))[0], features.rotation) > DRAFT_REACH_DEG:
+                discarded.append(_model_timings([prediction]) | {"postprocess_ms": 0.0})
+            else:
+                draft = await run_blocking(_finish, base, prediction, first.draft, options)
+                if draft.verified and rotation_angle_deg(draft.rotation, features.rotation) <= AGREEMENT_DEG:
                     draft.timings_ms["postprocess_ms"] += features.seconds * 1000.0
                     return draft
-            discarded.append(draft)
+                discarded.append(draft.timings_ms)
         for network in networks if auto else networks[:1]:
             answers.append(await ask(network))
             if answers[-1].verified:
@@ -413,18 +421,12 @@ async def register_clouds(
         answers += await run_blocking(_finish_multistart, base, list(predictions), first.model, options)
     # `ifnet` answers with the network, whatever else fits; the other stages only judge it.
     best = answers[0] if options.method == "ifnet" else max(answers, key=_rank)
-    return _unless_contradicted(
-        _with_paid(best, [answer for answer in answers if answer is not best] + discarded), answers
-    )
-
-
-def _with_paid(best: RegistrationResult, others: list[RegistrationResult]) -> RegistrationResult:
-    """The answer with the model calls and post-processing of every other stage that ran added to its timings."""
-    for answer in others:
+    for timings in [answer.timings_ms for answer in answers if answer is not best] + discarded:
+        # The request paid for every stage that ran.
         for name in ("inference_ms", "postprocess_ms"):
-            best.timings_ms[name] += answer.timings_ms[name]
-        best.timings_ms["batch_size"] = max(best.timings_ms["batch_size"], answer.timings_ms["batch_size"])
-    return best
+            best.timings_ms[name] += timings[name]
+        best.timings_ms["batch_size"] = max(best.timings_ms["batch_size"], timings["batch_size"])
+    return _unless_contradicted(best, answers)
 
 
 def _unless_contradicted(best: RegistrationResult, answers: list[RegistrationResult]) -> RegistrationResult:

@@ -157,8 +157,9 @@ def test_the_global_paths_starts_run_on_fewer_points_and_still_find_the_turn(rea
 
 def test_auto_asks_the_draft_first_and_keeps_its_answer_only_where_feature_matching_agrees(real_scans, monkeypatch):
     """A model with a draft: `auto` asks the draft (at its points, refining its answer even unasked)
-    and stops there when feature matching's guess agrees; when it does not, the model is asked as
-    if there were no draft; the other models' drafts are not asked. `global`'s 24 starts and `ifnet`
+    and stops there when feature matching's guess agrees; when it does not (a draft answer far from
+    the guess is not even refined), the model is asked as if there were no draft; the other models'
+    drafts are not asked. `global`'s 24 starts and `ifnet`
     ask the model."""
     from service import registration
 
@@ -191,8 +192,13 @@ def test_auto_asks_the_draft_first_and_keeps_its_answer_only_where_feature_match
     assert rotation_angle_deg(confirmed.rotation, TRUE_ROTATION) < 0.01
 
     monkeypatch.setattr(registration, "feature_match", lambda *args: (np.eye(3), np.zeros(3)))  # disagrees
+    checked, check = [], registration._checked
+    monkeypatch.setattr(registration, "_checked", lambda *args: checked.append(args[1]) or check(*args))
     unconfirmed = run("auto", target)
     assert asked == [("draft", 384), ("model", 768)] and (unconfirmed.stage, unconfirmed.verified) == ("ifnet", True)
+    # The draft's answer, more than DRAFT_REACH_DEG from the guess, was set aside unrefined: the model's
+    # answer and the guess were refined and checked, nothing else.
+    assert len(checked) == 2 and rotation_angle_deg(checked[1], np.eye(3)) == pytest.approx(0.0, abs=1e-9)
     assert unconfirmed.timings_ms["inference_ms"] == 2.0  # the discarded draft's call was paid for too
     other = run("auto", target, first_turned=True)  # only the first model's draft is asked
     assert asked == [("draft", 384), ("model", 768), ("indoor", 768)] and (other.model, other.verified) == (
