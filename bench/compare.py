@@ -24,8 +24,8 @@ import httpx
 import numpy as np
 
 from bench import harness
-from model.geometry import REFINE_SPACINGS, AlignmentClouds
-from service.registration import COARSE_DISTANCE_NORMALISED
+from model.geometry import AlignmentClouds
+from service.registration import refine_distances
 
 DEFAULT_SCANS = (
     "real_scans/pcl_office1",
@@ -256,8 +256,7 @@ def models(args) -> int:
 def refined_errors(pair: harness.Pair, clouds: AlignmentClouds, normalisation, answer) -> tuple[float, float, float]:
     """Rotation error, right, verified of an answer refined as the service refines it (coarse, then fine)."""
     rotation, translation = answer
-    coarse = COARSE_DISTANCE_NORMALISED / normalisation.scale
-    for distance in (max(coarse, REFINE_SPACINGS * clouds.spacing), REFINE_SPACINGS * clouds.spacing):
+    for distance in refine_distances(clouds.spacing, normalisation.scale):
         rotation, translation, _ = clouds.refine(rotation, translation, distance)
     found = harness.errors(pair, rotation, translation)
     return found["rotation_deg"], float(found["right"]), float(clouds.verify(rotation, translation).verified)

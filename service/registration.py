@@ -216,6 +216,16 @@ class _Candidate:
     verification: Verification
 
 
+def refine_distances(spacing: float, scale: float, max_distance: float | None = None) -> list[float]:
+    """The correspondence distances of one refinement, in the user's units: the user's own, else
+    coarse to fine, first a share of the clouds' size (COARSE_DISTANCE_NORMALISED in the frame that
+    `scale` normalises to) and then REFINE_SPACINGS point spacings."""
+    if max_distance:
+        return [max_distance]
+    fine = REFINE_SPACINGS * spacing
+    return [max(COARSE_DISTANCE_NORMALISED / scale, fine), fine]
+
+
 def _checked(prepared: _Prepared, rotation: np.ndarray, translation: np.ndarray, refine_options) -> _Candidate:
     """Refine (when asked) and check one answer. Without a distance of the user's, the refinement
     runs coarse to fine: first at a share of the clouds' size (to pull in a few degrees' error),
@@ -223,9 +233,7 @@ def _checked(prepared: _Prepared, rotation: np.ndarray, translation: np.ndarray,
     refinement = None
     if refine_options is not None:
         network_transform = to_matrix(rotation, translation)
-        fine = REFINE_SPACINGS * prepared.check.spacing
-        coarse = COARSE_DISTANCE_NORMALISED / prepared.normalisation.scale
-        distances = [refine_options.max_distance] if refine_options.max_distance else [max(coarse, fine), fine]
+        distances = refine_distances(prepared.check.spacing, prepared.normalisation.scale, refine_options.max_distance)
         iterations = 0
         for distance in distances:
             rotation, translation, steps = prepared.check.refine(
@@ -397,7 +405,7 @@ async def register_clouds(
                 discarded.append(_model_timings([prediction]) | {"postprocess_ms": 0.0})
             else:
                 draft = await run_blocking(_finish, base, prediction, first.draft, options)
-                if draft.verified and rotation_angle_deg(draft.rotation, features.rotation) <= AGREEMENT_DEG:
+                if _confirms(features, draft):
                     draft.timings_ms["postprocess_ms"] += features.seconds * 1000.0
                     return draft
                 discarded.append(draft.timings_ms)
@@ -410,7 +418,7 @@ async def register_clouds(
     # Feature matching: the global path's cheapest stage, and a second opinion on a verified answer.
     features = features or await run_blocking(_feature_guess, base)
     settled = [answer for answer in answers if answer.verified]
-    if settled and rotation_angle_deg(settled[0].rotation, features.rotation) <= AGREEMENT_DEG:
+    if settled and _confirms(features, settled[0]):
         # It agrees with the verified answer: nothing to refine or judge. Its time still counts.
         settled[0].timings_ms["postprocess_ms"] += features.seconds * 1000.0
     else:
@@ -427,6 +435,11 @@ async def register_clouds(
             best.timings_ms[name] += timings[name]
         best.timings_ms["batch_size"] = max(best.timings_ms["batch_size"], timings["batch_size"])
     return _unless_contradicted(best, answers)
+
+
+def _confirms(guess: _FeatureGuess, answer: RegistrationResult) -> bool:
+    """Feature matching's guess confirms a verified answer when it lies within AGREEMENT_DEG of it."""
+    return answer.verified and rotation_angle_deg(answer.rotation, guess.rotation) <= AGREEMENT_DEG
 
 
 def _unless_contradicted(best: RegistrationResult, answers: list[RegistrationResult]) -> RegistrationResult:
