@@ -279,11 +279,16 @@ def _result(
 
 
 def _finish(
-    prepared: _Prepared, prediction: Prediction, network: Network, options: RegistrationOptions
+    prepared: _Prepared,
+    prediction: Prediction,
+    network: Network,
+    options: RegistrationOptions,
+    start: np.ndarray | None = None,
 ) -> RegistrationResult:
-    """The network's answer, refined if asked (always, for a draft's coarse answer), and checked."""
+    """The network's answer (for the source turned by `start`), refined if asked (always, for a
+    draft's coarse answer), and checked."""
     started = time.perf_counter()
-    rotation, translation = _user_transform(prepared, prediction, np.eye(3))
+    rotation, translation = _user_transform(prepared, prediction, np.eye(3) if start is None else start)
     refine_options = options.refine or (RefineOptions() if network.stage == "draft" else None)
     chosen = _checked(prepared, rotation, translation, refine_options)
     timings = _model_timings([prediction]) | {"postprocess_ms": (time.perf_counter() - started) * 1000.0}
@@ -397,18 +402,12 @@ async def register_clouds(
     if options.method != "global":
         if auto and first.draft is not None:
             # A draft's answer stands only where feature matching, an independent method, agrees; the
-            # guess is needed on every path of `auto`, so it comes first and spares refining a draft
-            # answer too far from it to end up agreeing.
+            # guess is needed on every path of `auto`, so it comes first.
             features = await run_blocking(_feature_guess, base)
-            prediction = await first.draft.predict(base.source_network, base.target_network)
-            if rotation_angle_deg(_user_transform(base, prediction, np.eye(3))[0], features.rotation) > DRAFT_REACH_DEG:
-                discarded.append(_model_timings([prediction]) | {"postprocess_ms": 0.0})
-            else:
-                draft = await run_blocking(_finish, base, prediction, first.draft, options)
-                if _confirms(features, draft):
-                    draft.timings_ms["postprocess_ms"] += features.seconds * 1000.0
-                    return draft
-                discarded.append(draft.timings_ms)
+            draft, paid = await _confirmed_draft(base, features, first.draft, options, run_blocking)
+            if draft is not None:
+                return draft
+            discarded += paid
         for network in networks if auto else networks[:1]:
             answers.append(await ask(network))
             if answers[-1].verified:
@@ -429,12 +428,71 @@ async def register_clouds(
         answers += await run_blocking(_finish_multistart, base, list(predictions), first.model, options)
     # `ifnet` answers with the network, whatever else fits; the other stages only judge it.
     best = answers[0] if options.method == "ifnet" else max(answers, key=_rank)
-    for timings in [answer.timings_ms for answer in answers if answer is not best] + discarded:
-        # The request paid for every stage that ran.
-        for name in ("inference_ms", "postprocess_ms"):
-            best.timings_ms[name] += timings[name]
-        best.timings_ms["batch_size"] = max(best.timings_ms["batch_size"], timings["batch_size"])
+    # The request paid for every stage that ran.
+    _charged(best, [answer.timings_ms for answer in answers if answer is not best] + discarded)
     return _unless_contradicted(best, answers)
+
+
+async def _confirmed_draft(
+    prepared: _Prepared,
+    features: _FeatureGuess,
+    draft: Network,
+    options: RegistrationOptions,
+    run_blocking: RunBlocking,
+) -> tuple[RegistrationResult | None, list[dict[str, float]]]:
+    """The draft's answer where feature matching confirms it, else None and the timings of the
+    draft's answers set aside (paid for, but no candidate).
+
+    The draft is asked for the source as it lies and, unless that answer is verified, for the
+    source turned by the guess: the network knows turns of up to 45 deg, the guess any turn. An
+    answer from the guess lies near it by construction, so it stands only if the first answer,
+    refined, does not contradict it (as the model's answer would in the second opinion). An answer
+    more than DRAFT_REACH_DEG from the guess is set aside unrefined: refinement would not bring the
+    two within AGREEMENT_DEG."""
+    paid: list[dict[str, float]] = []
+
+    async def ask(start: np.ndarray) -> tuple[Prediction, bool]:
+        turned = (prepared.source_network @ start.T).astype(np.float32)
+        prediction = await draft.predict(turned, prepared.target_network)
+        rotation = _user_transform(prepared, prediction, start)[0]
+        return prediction, rotation_angle_deg(rotation, features.rotation) <= DRAFT_REACH_DEG
+
+    async def finish(prediction: Prediction, start: np.ndarray) -> RegistrationResult:
+        answer = await run_blocking(_finish, prepared, prediction, draft, options, start)
+        paid.append(answer.timings_ms)
+        return answer
+
+    own_prediction, near = await ask(np.eye(3))
+    own = await finish(own_prediction, np.eye(3)) if near else None
+    if own is not None and _confirms(features, own):
+        return _charged(own, paid[:-1], features), []
+    if own is not None and own.verified:  # a verified answer the guess contradicts: not the draft's to settle
+        return None, paid
+    start = features.rotation @ prepared.init[:3, :3].T  # the guess's turn of the network's source
+    prediction, near = await ask(start)
+    chosen = await finish(prediction, start) if near else None
+    if chosen is None or not _confirms(features, chosen):
+        unrefined = [
+            _model_timings([p]) | {"postprocess_ms": 0.0}
+            for p, a in ((own_prediction, own), (prediction, chosen))
+            if a is None
+        ]
+        return None, paid + unrefined
+    own = own or await finish(own_prediction, np.eye(3))  # refined, it may contradict the guess's answer
+    if not _unless_contradicted(chosen, [chosen, own]).verified:
+        return None, paid
+    return _charged(chosen, [timings for timings in paid if timings is not chosen.timings_ms], features), []
+
+
+def _charged(answer: RegistrationResult, others: list[dict[str, float]], features: _FeatureGuess | None = None):
+    """The answer with the cost of the other stages that ran for it (and of the feature guess)."""
+    for timings in others:
+        for name in ("inference_ms", "postprocess_ms"):
+            answer.timings_ms[name] += timings[name]
+        answer.timings_ms["batch_size"] = max(answer.timings_ms["batch_size"], timings["batch_size"])
+    if features is not None:
+        answer.timings_ms["postprocess_ms"] += features.seconds * 1000.0
+    return answer
 
 
 def _confirms(guess: _FeatureGuess, answer: RegistrationResult) -> bool:

@@ -195,20 +195,91 @@ def test_auto_asks_the_draft_first_and_keeps_its_answer_only_where_feature_match
     checked, check = [], registration._checked
     monkeypatch.setattr(registration, "_checked", lambda *args: checked.append(args[1]) or check(*args))
     unconfirmed = run("auto", target)
-    assert asked == [("draft", 384), ("model", 768)] and (unconfirmed.stage, unconfirmed.verified) == ("ifnet", True)
-    # The draft's answer, more than DRAFT_REACH_DEG from the guess, was set aside unrefined: the model's
-    # answer and the guess were refined and checked, nothing else.
+    # Asked again from the guess's turn, the draft still lands on the truth, far from the guess.
+    assert asked == [("draft", 384), ("draft", 384), ("model", 768)]
+    assert (unconfirmed.stage, unconfirmed.verified) == ("ifnet", True)
+    # The draft's answers, more than DRAFT_REACH_DEG from the guess, were set aside unrefined: the
+    # model's answer and the guess were refined and checked, nothing else.
     assert len(checked) == 2 and rotation_angle_deg(checked[1], np.eye(3)) == pytest.approx(0.0, abs=1e-9)
-    assert unconfirmed.timings_ms["inference_ms"] == 2.0  # the discarded draft's call was paid for too
+    assert unconfirmed.timings_ms["inference_ms"] == 3.0  # the discarded drafts' calls were paid for too
     other = run("auto", target, first_turned=True)  # only the first model's draft is asked
-    assert asked == [("draft", 384), ("model", 768), ("indoor", 768)] and (other.model, other.verified) == (
-        "indoor",
-        True,
-    )
+    assert asked == [("draft", 384), ("draft", 384), ("model", 768), ("indoor", 768)]
+    assert (other.model, other.verified) == ("indoor", True)
     searched = run("global", apply_transform(source, euler_to_matrix([150.0, 40.0, -70.0]), TRUE_TRANSLATION))
     assert asked == [("model", registration.STARTS_POINTS)] * 24 and searched.stage == "multistart"
     network = run("ifnet", target)
     assert asked == [("model", 768)] and (network.stage, network.refinement) == ("ifnet", None)
+
+
+def limited_reach(turned_by: list, reach_deg: float = 45.0):
+    """A network that, like IFNet, only knows turns up to reach_deg: beyond, it answers "no turn"."""
+
+    async def predict(source_n, target_n):
+        rotation, translation = kabsch(source_n.astype(np.float64), target_n.astype(np.float64))
+        turned_by.append(float(rotation_angle_deg(rotation, np.eye(3))))
+        if turned_by[-1] > reach_deg:
+            return Prediction(np.eye(3), np.zeros(3), inference_ms=1.0)
+        return Prediction(rotation, translation, inference_ms=1.0)
+
+    return predict
+
+
+def test_auto_asks_the_draft_again_from_feature_matchings_guess_for_a_turn_beyond_its_reach(real_scans, monkeypatch):
+    """A pair turned 150 deg: the draft, asked for the source as it lies, answers far from the
+    guess; asked again for the source turned by the guess (3 deg off), it gives the answer, refined
+    and confirmed. Its first answer, refined, fits too poorly to contradict it. The model is not asked."""
+    from service import registration
+
+    truth = euler_to_matrix([150.0, 40.0, -70.0])
+    guess = euler_to_matrix([3.0, 0.0, 0.0]) @ truth
+    monkeypatch.setattr(registration, "feature_match", lambda *args: (guess, TRUE_TRANSLATION))
+    turns, model_turns = [], []
+    options, settings, _ = pipeline_inputs(None, None, method="auto", init=INIT)
+    draft = Network("object", 384, limited_reach(turns), "draft")
+    networks = [Network("object", 768, limited_reach(model_turns), draft=draft)]
+    source = real_scans["kitti_000008_fov"]
+    target = apply_transform(source, truth, TRUE_TRANSLATION)
+    result = asyncio.run(register_clouds(source, target, options, settings, networks))
+    assert len(turns) == 2 and turns[0] > 45.0 and turns[1] == pytest.approx(3.0, abs=0.01) and model_turns == []
+    assert (result.stage, result.verified) == ("draft", True)
+    assert rotation_angle_deg(result.rotation, truth) < 0.01
+    assert result.timings_ms["inference_ms"] == 2.0
+
+
+def test_a_draft_answer_from_the_guess_does_not_stand_where_its_own_answer_contradicts_it(monkeypatch):
+    """A box is the same turned 180 deg about an axis. Feature matching's guess is that flip of the
+    truth; the draft, asked for the source turned by the guess, stays there (it fits perfectly).
+    Its own answer, the truth, refined, fits as well: the clouds do not tell which is right, so the
+    draft's answer does not stand, and the whole pipeline flags the answer as ambiguous."""
+    from service import registration
+
+    rng = np.random.default_rng(5)
+    sides = np.array([2.0, 1.0, 0.5])
+    faces = rng.integers(0, 3, 6000)
+    points = rng.uniform(-0.5, 0.5, (6000, 3)) * sides
+    points[np.arange(6000), faces] = np.sign(rng.uniform(-1, 1, 6000)) * sides[faces] / 2  # on the box's faces
+    truth = euler_to_matrix([20.0, 10.0, 0.0])
+    flip = truth @ euler_to_matrix([180.0, 0.0, 0.0])  # about the box's z axis: the same box
+    monkeypatch.setattr(registration, "feature_match", lambda *args: (flip, np.zeros(3)))
+    asked = []
+
+    async def stays_when_turned(source_n, target_n):
+        asked.append("draft")
+        if len(asked) == 2:  # from the guess: already fitting, it stays
+            return Prediction(np.eye(3), np.zeros(3))
+        return Prediction(*kabsch(source_n.astype(np.float64), target_n.astype(np.float64)))
+
+    async def model(source_n, target_n):
+        asked.append("model")
+        return Prediction(*kabsch(source_n.astype(np.float64), target_n.astype(np.float64)))
+
+    options, settings, _ = pipeline_inputs(None, None, method="auto")
+    networks = [Network("object", 768, model, draft=Network("object", 384, stays_when_turned, "draft"))]
+    result = asyncio.run(
+        register_clouds(points, apply_transform(points, truth, np.zeros(3)), options, settings, networks)
+    )
+    assert asked == ["draft", "draft", "model"]
+    assert not result.verified and result.reason.startswith("ambiguous")
 
 
 def test_feature_matching_that_agrees_with_a_verified_answer_is_not_refined_again(real_scans, monkeypatch):
