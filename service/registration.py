@@ -391,6 +391,7 @@ async def register_clouds(
     answers: list[RegistrationResult] = []
     discarded: list[dict[str, float]] = []  # the timings of an unconfirmed draft's answer: no candidate, but paid for
     features: _FeatureGuess | None = None
+    features_answer: RegistrationResult | None = None
 
     async def ask(network: Network) -> RegistrationResult:
         count = network.network_points
@@ -404,7 +405,7 @@ async def register_clouds(
             # A draft's answer stands only where feature matching, an independent method, agrees; the
             # guess is needed on every path of `auto`, so it comes first.
             features = await run_blocking(_feature_guess, base)
-            draft, paid = await _confirmed_draft(base, features, first.draft, options, run_blocking)
+            draft, paid, features_answer = await _confirmed_draft(base, features, first.draft, options, run_blocking)
             if draft is not None:
                 return draft
             discarded += paid
@@ -417,7 +418,9 @@ async def register_clouds(
     # Feature matching: the global path's cheapest stage, and a second opinion on a verified answer.
     features = features or await run_blocking(_feature_guess, base)
     settled = [answer for answer in answers if answer.verified]
-    if settled and _confirms(features, settled[0]):
+    if features_answer is not None:  # refined and checked already, for the draft
+        answers.append(features_answer)
+    elif settled and _confirms(features, settled[0]):
         # It agrees with the verified answer: nothing to refine or judge. Its time still counts.
         settled[0].timings_ms["postprocess_ms"] += features.seconds * 1000.0
     else:
@@ -439,17 +442,21 @@ async def _confirmed_draft(
     draft: Network,
     options: RegistrationOptions,
     run_blocking: RunBlocking,
-) -> tuple[RegistrationResult | None, list[dict[str, float]]]:
+) -> tuple[RegistrationResult | None, list[dict[str, float]], RegistrationResult | None]:
     """The draft's answer where feature matching confirms it, else None and the timings of the
-    draft's answers set aside (paid for, but no candidate).
+    draft's answers set aside (paid for, but no candidate); and the guess refined and checked when
+    that was needed (a candidate of the rest of the pipeline).
 
-    The draft is asked for the source as it lies and, unless that answer is verified, for the
-    source turned by the guess: the network knows turns of up to 45 deg, the guess any turn. An
+    The draft is asked for the source as it lies and, unless that answer is verified, again for
+    the source turned by the guess: the network knows turns of up to 45 deg, the guess any turn.
+    A verified answer is confirmed by the guess within AGREEMENT_DEG of it or, where the guess is
+    too coarse for that (a few degrees off on noisy clouds), by the guess refined and checked. An
     answer from the guess lies near it by construction, so it stands only if the first answer,
     refined, does not contradict it (as the model's answer would in the second opinion). An answer
     more than DRAFT_REACH_DEG from the guess is set aside unrefined: refinement would not bring the
     two within AGREEMENT_DEG."""
     paid: list[dict[str, float]] = []
+    refined: list[RegistrationResult] = []  # the guess refined and checked, once needed
 
     async def ask(start: np.ndarray) -> tuple[Prediction, bool]:
         turned = (prepared.source_network @ start.T).astype(np.float32)
@@ -462,36 +469,43 @@ async def _confirmed_draft(
         paid.append(answer.timings_ms)
         return answer
 
+    async def confirmed(answer: RegistrationResult) -> bool:
+        if _confirms(features, answer) or not answer.verified:
+            return answer.verified
+        if not refined:
+            refined.append(await run_blocking(_finish_features, prepared, features, draft.model, options))
+        return refined[0].verified and rotation_angle_deg(refined[0].rotation, answer.rotation) <= AGREEMENT_DEG
+
+    def stands(answer: RegistrationResult) -> tuple[RegistrationResult, list, None]:
+        guess_cost = refined[0].timings_ms if refined else {"postprocess_ms": features.seconds * 1000.0}
+        others = [timings for timings in paid if timings is not answer.timings_ms]
+        return _charged(answer, [*others, {"inference_ms": 0.0, "batch_size": 0} | guess_cost]), [], None
+
+    def set_aside(*unrefined: Prediction) -> tuple[None, list, RegistrationResult | None]:
+        unpaid = [_model_timings([prediction]) | {"postprocess_ms": 0.0} for prediction in unrefined]
+        return None, paid + unpaid, refined[0] if refined else None
+
     own_prediction, near = await ask(np.eye(3))
     own = await finish(own_prediction, np.eye(3)) if near else None
-    if own is not None and _confirms(features, own):
-        return _charged(own, paid[:-1], features), []
-    if own is not None and own.verified:  # a verified answer the guess contradicts: not the draft's to settle
-        return None, paid
+    if own is not None and own.verified:
+        return stands(own) if await confirmed(own) else set_aside()  # else the guess contradicts it
     start = features.rotation @ prepared.init[:3, :3].T  # the guess's turn of the network's source
     prediction, near = await ask(start)
-    chosen = await finish(prediction, start) if near else None
-    if chosen is None or not _confirms(features, chosen):
-        unrefined = [
-            _model_timings([p]) | {"postprocess_ms": 0.0}
-            for p, a in ((own_prediction, own), (prediction, chosen))
-            if a is None
-        ]
-        return None, paid + unrefined
+    if not near:
+        return set_aside(prediction) if own is not None else set_aside(own_prediction, prediction)
+    chosen = await finish(prediction, start)
+    if not await confirmed(chosen):
+        return set_aside() if own is not None else set_aside(own_prediction)
     own = own or await finish(own_prediction, np.eye(3))  # refined, it may contradict the guess's answer
-    if not _unless_contradicted(chosen, [chosen, own]).verified:
-        return None, paid
-    return _charged(chosen, [timings for timings in paid if timings is not chosen.timings_ms], features), []
+    return stands(chosen) if _unless_contradicted(chosen, [chosen, own]).verified else set_aside()
 
 
-def _charged(answer: RegistrationResult, others: list[dict[str, float]], features: _FeatureGuess | None = None):
-    """The answer with the cost of the other stages that ran for it (and of the feature guess)."""
+def _charged(answer: RegistrationResult, others: list[dict[str, float]]) -> RegistrationResult:
+    """The answer with the cost of the other stages that ran for it."""
     for timings in others:
         for name in ("inference_ms", "postprocess_ms"):
             answer.timings_ms[name] += timings[name]
         answer.timings_ms["batch_size"] = max(answer.timings_ms["batch_size"], timings["batch_size"])
-    if features is not None:
-        answer.timings_ms["postprocess_ms"] += features.seconds * 1000.0
     return answer
 
 

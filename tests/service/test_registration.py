@@ -211,6 +211,47 @@ def test_auto_asks_the_draft_first_and_keeps_its_answer_only_where_feature_match
     assert asked == [("model", 768)] and (network.stage, network.refinement) == ("ifnet", None)
 
 
+def test_a_verified_draft_answer_the_guess_is_too_coarse_to_confirm_is_confirmed_by_the_guess_refined(
+    real_scans, monkeypatch
+):
+    """Feature matching's guess 7 deg off (as on noisy clouds): refined and checked, it lands on the
+    draft's verified answer, which then stands without the model being asked; its cost is counted."""
+    from service import registration
+
+    coarse = euler_to_matrix([7.0, 0.0, 0.0]) @ TRUE_ROTATION
+    monkeypatch.setattr(registration, "feature_match", lambda *args: (coarse, TRUE_TRANSLATION))
+    asked = []
+
+    def recorded(name):
+        async def predict(source_n, target_n):
+            asked.append(name)
+            return Prediction(*kabsch(source_n.astype(np.float64), target_n.astype(np.float64)), inference_ms=1.0)
+
+        return predict
+
+    options, settings, _ = pipeline_inputs(None, None, method="auto")
+    networks = [Network("object", 768, recorded("model"), draft=Network("object", 384, recorded("draft"), "draft"))]
+    source = real_scans["kitti_000008_fov"]
+    result = asyncio.run(
+        register_clouds(source, apply_transform(source, TRUE_ROTATION, TRUE_TRANSLATION), options, settings, networks)
+    )
+    assert asked == ["draft"] and (result.stage, result.verified) == ("draft", True)
+    assert rotation_angle_deg(result.rotation, TRUE_ROTATION) < 0.01
+
+    off = euler_to_matrix([25.0, 0.0, 0.0]) @ TRUE_ROTATION, TRUE_TRANSLATION + 50.0  # within reach, but wrong
+    monkeypatch.setattr(registration, "feature_match", lambda *args: off)
+    asked.clear()
+    checked, check = [], registration._checked
+    monkeypatch.setattr(registration, "_checked", lambda *args: checked.append(args[1]) or check(*args))
+    other = asyncio.run(
+        register_clouds(source, apply_transform(source, TRUE_ROTATION, TRUE_TRANSLATION), options, settings, networks)
+    )
+    # The refined guess lands elsewhere: the model is asked, and the guess is not refined a second time
+    # (the draft's answer, the guess and the model's answer are checked).
+    assert asked == ["draft", "model"] and (other.stage, other.verified) == ("ifnet", True)
+    assert len(checked) == 3
+
+
 def limited_reach(turned_by: list, reach_deg: float = 45.0):
     """A network that, like IFNet, only knows turns up to reach_deg: beyond, it answers "no turn"."""
 
