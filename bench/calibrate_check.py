@@ -12,7 +12,8 @@ prepares them), that answer refined, and the truth perturbed by 2-90 degrees or 
 translation offset. An answer is right when its rotation error is <= 2 degrees and its
 translation error <= 2 % of the cloud's extent (the diagonal of its bounding box). The table
 counts, per set, the right answers the check verified and the wrong answers it verified (the
-latter must be zero).
+latter must be zero). Every cloud is first cut to the subset the service checks
+(service.registration.CHECK_MAX_POINTS).
 """
 
 import argparse
@@ -37,9 +38,11 @@ from model.geometry import (  # noqa: E402
     from_matrix,
     point_spacing,
     refine,
+    subset,
     to_matrix,
     verify_alignment,
 )
+from service.registration import CHECK_MAX_POINTS  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 MODELNET_SETS = {
@@ -323,6 +326,9 @@ def main(argv: list[str] | None = None) -> None:
             sets[name] = harness.truth_pairs()
         else:
             sets[name] = scan_pairs(name, args.scans, args.seed)
+    for pairs in sets.values():  # the clouds the service checks: at most CHECK_MAX_POINTS of each
+        for pair in pairs:
+            pair.source, pair.target = subset(pair.source, CHECK_MAX_POINTS), subset(pair.target, CHECK_MAX_POINTS)
     command = "python -m bench.calibrate_check " + " ".join(argv if argv is not None else sys.argv[1:])
     if args.task == "refine":
         results = compare_refinement(sets, network, args.seed)

@@ -49,13 +49,12 @@ from service.settings import Settings
 from service.state import ServiceState
 from service.validation import InvalidInput, check_cloud
 
-# Refinement and the check run on at most this many points per cloud (a seeded subset): small_gicp
-# holds the interpreter lock, so their cost and stalls stay bounded on large scans.
-CHECK_MAX_POINTS = 20_000
+# Feature matching, refinement and the check run on at most this many points per cloud (a seeded
+# subset): their cost grows with it and small_gicp and KISS-Matcher hold the interpreter lock.
+CHECK_MAX_POINTS = 8_000
 REFINE_MAX_SECONDS = 10.0
 # The refinement's first, coarse pass, in normalised units (clouds of radius NETWORK_RADIUS).
 COARSE_DISTANCE_NORMALISED = 0.05
-FEATURE_MAX_POINTS = 8_000
 # The global path's starts: the 24 rotations of a cube, every rotation within the network's range
 # of one of them; the network's answers from the best few (by fitness) are refined and checked.
 STARTS = Rotation.create_group("O").as_matrix()
@@ -305,9 +304,7 @@ class _FeatureGuess:
 def _feature_guess(prepared: _Prepared) -> _FeatureGuess:
     """Feature matching (KISS-Matcher), whatever the rotation: a coarse answer."""
     started = time.perf_counter()
-    # KISS-Matcher holds the interpreter lock for its whole run: it gets a smaller subset.
-    source, target = (subset(cloud, FEATURE_MAX_POINTS) for cloud in (prepared.check.source, prepared.check.target))
-    rotation, translation = feature_match(source, target, prepared.check.spacing)
+    rotation, translation = feature_match(prepared.check.source, prepared.check.target, prepared.check.spacing)
     return _FeatureGuess(rotation, translation, time.perf_counter() - started)
 
 
