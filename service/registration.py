@@ -5,12 +5,14 @@ the optional initial guess to the source, resamples each cloud to the network's 
 centres each and scales both by one common factor to the network's radius
 (`model.geometry.NETWORK_RADIUS`), asks the model (any async callable) for the transform between
 the normalised clouds, maps it back into the user's units, composes it with the initial guess,
-optionally refines it (GICP on the full clouds) and checks it (`model.geometry.verify_alignment`).
-Under `auto` the first model's draft network (the same weights over fewer blocks and points, when
-the repository has one) is asked before the model, its answer always refined; it stands only when
-it passes the check and feature matching agrees with it. Where the method allows and the answer
-fails the check, the other networks follow in turn, then the global path: feature matching (also
-a second opinion on a verified answer), then the first network from rotated starts.
+optionally refines it (GICP on up to CHECK_MAX_POINTS of each cloud) and checks it
+(`model.geometry.verify_alignment`). Under `auto` the first model's draft network (the same
+weights over fewer blocks and points, when the repository has one) is asked before the model, for
+the source as it lies and, failing that, turned by feature matching's guess; its answer, always
+refined, stands only when it passes the check and feature matching agrees with it. Where the
+method allows and the answer fails the check, the other networks follow in turn, then the global
+path: feature matching (also a second opinion on a verified answer), then the first network from
+rotated starts.
 `register_pairs` runs a request's pairs through it and the models' batchers.
 """
 
@@ -56,9 +58,8 @@ CHECK_MAX_POINTS = 8_000
 REFINE_MAX_SECONDS = 10.0
 # The refinement's first, coarse pass, in normalised units (clouds of radius NETWORK_RADIUS).
 COARSE_DISTANCE_NORMALISED = 0.05
-# Feature matching's voxel follows the point spacing of each cloud sampled to at most this many
-# points (the check's subset is sparser): with the wider spacing of 8,000 points KISS-Matcher
-# missed the ICL-NUIM pair with ground truth that it finds at this one.
+# Feature matching's voxel follows each cloud's point spacing at up to this many points: the
+# check's sparser subset would give it a voxel too coarse for some real scans (docs/training/scenes.md).
 FEATURE_SPACING_POINTS = 20_000
 # The global path's starts: the 24 rotations of a cube, every rotation within the network's range
 # of one of them; the network's answers from the best few (by fitness) are refined and checked.
