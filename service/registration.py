@@ -499,6 +499,8 @@ async def _confirmed_draft(
     if own is not None and own.verified:
         return stands(own) if await confirmed(own) else set_aside()  # else the guess contradicts it
     start = features.rotation @ prepared.init[:3, :3].T  # the guess's turn of the network's source
+    if np.allclose(start, np.eye(3)):  # no turn (feature matching found nothing): the same call again
+        return set_aside() if own is not None else set_aside(own_prediction)
     prediction, near = await ask(start)
     if not near:
         return set_aside(prediction) if own is not None else set_aside(own_prediction, prediction)
