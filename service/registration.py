@@ -464,33 +464,42 @@ async def _confirmed_draft(
     refined, does not contradict it (as the model's answer would in the second opinion). An answer
     more than DRAFT_REACH_DEG from the guess is set aside unrefined: refinement would not bring the
     two within AGREEMENT_DEG."""
-    paid: list[dict[str, float]] = []
+    paid: list[dict[str, float]] = []  # the timings of the draft's answers refined and checked
+    unrefined: list[Prediction] = []  # the draft's answers set aside unrefined (too far from the guess)
     refined: list[RegistrationResult] = []  # the guess refined and checked, once needed
 
     async def ask(start: np.ndarray) -> tuple[Prediction, bool]:
         turned = (prepared.source_network @ start.T).astype(np.float32)
         prediction = await draft.predict(turned, prepared.target_network)
         rotation = _user_transform(prepared, prediction, start)[0]
-        return prediction, rotation_angle_deg(rotation, features.rotation) <= DRAFT_REACH_DEG
+        near = rotation_angle_deg(rotation, features.rotation) <= DRAFT_REACH_DEG
+        if not near:
+            unrefined.append(prediction)
+        return prediction, near
 
     async def finish(prediction: Prediction, start: np.ndarray) -> RegistrationResult:
+        unrefined[:] = [other for other in unrefined if other is not prediction]
         answer = await run_blocking(_finish, prepared, prediction, draft, options, start)
         paid.append(answer.timings_ms)
         return answer
 
     async def confirmed(answer: RegistrationResult) -> bool:
-        if _confirms(features, answer) or not answer.verified:
-            return answer.verified
+        if not answer.verified:
+            return False
+        if _confirms(features, answer):
+            return True
         if not refined:
             refined.append(await run_blocking(_finish_features, prepared, features, draft.model, options))
         return refined[0].verified and rotation_angle_deg(refined[0].rotation, answer.rotation) <= AGREEMENT_DEG
 
     def stands(answer: RegistrationResult) -> tuple[RegistrationResult, list, None]:
-        guess_cost = refined[0].timings_ms if refined else {"postprocess_ms": features.seconds * 1000.0}
         others = [timings for timings in paid if timings is not answer.timings_ms]
-        return _charged(answer, [*others, {"inference_ms": 0.0, "batch_size": 0} | guess_cost]), [], None
+        _charged(answer, (others + [refined[0].timings_ms]) if refined else others)
+        if not refined:  # the guess alone confirmed it: its time still counts
+            answer.timings_ms["postprocess_ms"] += features.seconds * 1000.0
+        return answer, [], None
 
-    def set_aside(*unrefined: Prediction) -> tuple[None, list, RegistrationResult | None]:
+    def set_aside() -> tuple[None, list, RegistrationResult | None]:
         unpaid = [_model_timings([prediction]) | {"postprocess_ms": 0.0} for prediction in unrefined]
         return None, paid + unpaid, refined[0] if refined else None
 
@@ -500,13 +509,13 @@ async def _confirmed_draft(
         return stands(own) if await confirmed(own) else set_aside()  # else the guess contradicts it
     start = features.rotation @ prepared.init[:3, :3].T  # the guess's turn of the network's source
     if np.allclose(start, np.eye(3)):  # no turn (feature matching found nothing): the same call again
-        return set_aside() if own is not None else set_aside(own_prediction)
+        return set_aside()
     prediction, near = await ask(start)
     if not near:
-        return set_aside(prediction) if own is not None else set_aside(own_prediction, prediction)
+        return set_aside()
     chosen = await finish(prediction, start)
     if not await confirmed(chosen):
-        return set_aside() if own is not None else set_aside(own_prediction)
+        return set_aside()
     own = own or await finish(own_prediction, np.eye(3))  # refined, it may contradict the guess's answer
     return stands(chosen) if _unless_contradicted(chosen, [chosen, own]).verified else set_aside()
 
