@@ -76,8 +76,8 @@ RUN test -f /opt/app/service/models/object.onnx \
  && /opt/venv/bin/python -c "import service.app, model.geometry, scipy.spatial.transform, small_gicp, kiss_matcher, lzf; \
 from service.engine import load_models; from service.settings import Settings; load_models(Settings(threads=1))"
 
-# IFNET_THREADS is deliberately unset: the service then sizes ONNX Runtime to the CPUs this
-# container may use (its cgroup CPU quota, e.g. `--cpus 2`, or the CPU affinity mask).
+# IFNET_WORKERS and IFNET_THREADS are deliberately unset: the service then runs a worker per CPU
+# this container may use (its cgroup CPU quota, e.g. `--cpus 2`, or the CPU affinity mask).
 ENV PATH=/opt/venv/bin:$PATH \
     PYTHONPATH=/opt/app \
     PYTHONUNBUFFERED=1 \

@@ -111,7 +111,7 @@ def overload(record: dict) -> list[str]:
         ["answers", o["statuses"]],
         ["accepted p99 (ms) / request timeout (s)", f"{o['accepted_p99_ms']:,.0f} / {record['request_timeout_s']:g}"],
         [
-            "RSS MB at 10 s, end, max; slope MB/min",
+            "RSS MB of all its processes at 10 s, end, max; slope MB/min",
             "{at_10_s:.0f}, {end:.0f}, {max:.0f}; {slope_per_min:+.1f}".format(**o["rss_mb"]),
         ],
         ["/ready during overload", o["ready_during"]],

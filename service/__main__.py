@@ -5,9 +5,11 @@ below override them.
 """
 
 import argparse
-import logging
 import math
+import os
+import shutil
 import sys
+import tempfile
 
 from pydantic import ValidationError
 
@@ -28,7 +30,12 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
         "(default: the shipped service/models, env IFNET_MODEL_REPOSITORY)",
     )
     parser.add_argument("--model-path", help="one ONNX model to serve alone instead (env IFNET_MODEL_PATH)")
-    parser.add_argument("--threads", type=int, help="ONNX Runtime intra-op threads (default: the usable CPUs)")
+    parser.add_argument(
+        "--workers", type=int, help="processes serving the port (default: the usable CPUs, env IFNET_WORKERS)"
+    )
+    parser.add_argument(
+        "--threads", type=int, help="ONNX Runtime intra-op threads per worker (default: its share of the usable CPUs)"
+    )
     parser.add_argument(
         "--log-level",
         choices=["critical", "error", "warning", "info", "debug"],
@@ -45,7 +52,9 @@ def main(argv: list[str] | None = None) -> int:
     except ValidationError as error:
         print(f"ifnet-serve: invalid settings:\n{error}", file=sys.stderr)
         return 2
-    logging.basicConfig(level=settings.log_level.upper(), format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    settings.configure_logging()
+    if settings.workers > 1:
+        return serve_workers(settings, overrides)
     # Load the models before binding the port: a bad model file fails at once with its reason.
     try:
         engines = load_models(settings)
@@ -58,15 +67,47 @@ def main(argv: list[str] | None = None) -> int:
     from service.app import create_app
     from service.protocol import service_protocol
 
-    uvicorn.run(
-        create_app(settings, engines=engines),
-        host=settings.host,
-        port=settings.port,
-        log_level=settings.log_level,
-        timeout_graceful_shutdown=math.ceil(settings.shutdown_timeout_s),  # uvicorn takes whole seconds
-        http=service_protocol(settings),
-        h11_max_incomplete_event_size=settings.max_head_bytes,  # the same bound for a head over several reads
-    )
+    uvicorn.run(create_app(settings, engines=engines), http=service_protocol(settings), **server_options(settings))
+    return 0
+
+
+def server_options(settings: Settings) -> dict:
+    """uvicorn's options, the same for one process and for several."""
+    return {
+        "host": settings.host,
+        "port": settings.port,
+        "log_level": settings.log_level,
+        "timeout_graceful_shutdown": math.ceil(settings.shutdown_timeout_s),  # uvicorn takes whole seconds
+        "h11_max_incomplete_event_size": settings.max_head_bytes,  # the same bound for a head over several reads
+    }
+
+
+def serve_workers(settings: Settings, overrides: dict) -> int:
+    """`settings.workers` processes on one socket under uvicorn's supervisor, which forwards SIGTERM
+    to each (each drains its requests) and stops them all if one fails to start (a bad model file:
+    the worker prints which and why). Exits 1 then."""
+    import uvicorn
+    from uvicorn.config import STARTUP_FAILURE
+    from uvicorn.supervisors import Multiprocess
+
+    # The workers are fresh interpreters: they read the flags from the environment, as the settings.
+    os.environ.update({f"IFNET_{name.upper()}": str(value) for name, value in overrides.items()})
+    metrics = tempfile.mkdtemp(prefix="ifnet-metrics-")
+    os.environ["PROMETHEUS_MULTIPROC_DIR"] = metrics  # read by prometheus_client as each worker imports it
+    try:
+        config = uvicorn.Config(
+            "service.workers:app",
+            factory=True,
+            http="service.workers:protocol",
+            workers=settings.workers,
+            **server_options(settings),
+        )
+        supervisor = Multiprocess(config, sockets=[config.bind_socket()])
+        supervisor.run()
+    finally:
+        shutil.rmtree(metrics, ignore_errors=True)
+    if any(process.exitcode == STARTUP_FAILURE for process in supervisor.processes):
+        return 1  # the worker has said why
     return 0
 
 

@@ -87,6 +87,7 @@ def _lifespan(engines: list[Engine] | None):
             batchers = [batcher for model in state.models.values() for batcher in model.batchers]
             await asyncio.gather(*(batcher.close(settings.shutdown_timeout_s) for batcher in batchers))
             logger.info("batchers drained; shutting down")
+            state.metrics.worker_stopped()
 
     return lifespan
 

@@ -1,10 +1,19 @@
 """Prometheus metrics and the recent-latency window that /health reports."""
 
+import os
 import time
 from collections import deque
 
 import numpy as np
-from prometheus_client import CONTENT_TYPE_LATEST, CollectorRegistry, Counter, Gauge, Histogram, Info, generate_latest
+from prometheus_client import (
+    CONTENT_TYPE_LATEST,
+    CollectorRegistry,
+    Counter,
+    Gauge,
+    Histogram,
+    generate_latest,
+    multiprocess,
+)
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 # Methods labelled by name; any other (clients may send made-up ones) is counted as "other".
@@ -13,7 +22,13 @@ LATENCY_BUCKETS = (0.01, 0.025, 0.05, 0.075, 0.1, 0.15, 0.2, 0.3, 0.5, 0.75, 1.0
 
 
 class Metrics:
-    """The service's metrics, in a registry of their own so that several apps (tests) can coexist."""
+    """The service's metrics, in a registry of their own so that several apps (tests) can coexist.
+
+    Under several workers (`PROMETHEUS_MULTIPROC_DIR` set by the supervisor before they start),
+    every worker writes its values to files there and /metrics, whichever worker answers it, adds
+    up those of all of them: counts and histograms summed, the queue depth of live workers summed,
+    readiness the least of theirs.
+    """
 
     def __init__(self, max_batch_size: int):
         self.registry = CollectorRegistry()
@@ -51,7 +66,13 @@ class Metrics:
             buckets=tuple(range(1, max_batch_size + 1)),
             registry=self.registry,
         )
-        self.queue_depth = Gauge("ifnet_queue_depth", "Pairs waiting for a model.", ["model"], registry=self.registry)
+        self.queue_depth = Gauge(
+            "ifnet_queue_depth",
+            "Pairs waiting for a model.",
+            ["model"],
+            registry=self.registry,
+            multiprocess_mode="livesum",
+        )
         self.rejections = Counter(
             "ifnet_batcher_rejections",
             "Pairs a model's batcher did not run, by reason.",
@@ -64,17 +85,39 @@ class Metrics:
             ["model", "stage", "verified"],
             registry=self.registry,
         )
-        self.ready = Gauge("ifnet_ready", "1 once every model is loaded and warmed up.", registry=self.registry)
-        self.model = Info("ifnet_model", "A served model.", ["model"], registry=self.registry)
+        self.ready = Gauge(
+            "ifnet_ready",
+            "1 once every model is loaded and warmed up (in every worker).",
+            registry=self.registry,
+            multiprocess_mode="livemin",
+        )
+        # An info metric as a gauge of 1: prometheus_client's Info is not shared between workers.
+        self.model = Gauge(
+            "ifnet_model_info",
+            "A served model.",
+            ["model", "version", "network_points"],
+            registry=self.registry,
+            multiprocess_mode="max",
+        )
 
     def add_model(self, name: str, version: str, network_points: int) -> None:
         """Its info, and its series at zero from the start, so that a model not yet asked still shows."""
-        self.model.labels(name).info({"version": version, "network_points": str(network_points)})
+        self.model.labels(name, version, str(network_points)).set(1)
         for metric in (self.queue_wait, self.inference, self.batch_size, self.queue_depth):
             metric.labels(name)
 
     def render(self) -> tuple[bytes, str]:
-        return generate_latest(self.registry), CONTENT_TYPE_LATEST
+        if "PROMETHEUS_MULTIPROC_DIR" not in os.environ:
+            return generate_latest(self.registry), CONTENT_TYPE_LATEST
+        every_worker = CollectorRegistry()
+        multiprocess.MultiProcessCollector(every_worker)
+        return generate_latest(every_worker), CONTENT_TYPE_LATEST
+
+    @staticmethod
+    def worker_stopped() -> None:
+        """Drops this worker's live gauges (queue depth, readiness) from the sums of the others."""
+        if "PROMETHEUS_MULTIPROC_DIR" in os.environ:
+            multiprocess.mark_process_dead(os.getpid())
 
 
 class LatencyWindow:

@@ -1,5 +1,6 @@
 """Every setting of the service, read from `IFNET_*` environment variables (or passed explicitly)."""
 
+import logging
 from pathlib import Path
 from typing import Literal
 
@@ -26,11 +27,20 @@ class Settings(BaseSettings):
     model_path: Path | None = Field(
         None, description="One ONNX model file to serve alone instead of the repository's, named as there."
     )
+    # Most of a pair's work (feature matching, refinement, sampling, parsing) holds Python's interpreter
+    # lock, so one process keeps about one CPU busy however many requests it has.
+    workers: int | None = Field(
+        None,
+        ge=1,
+        le=64,
+        description="Processes serving the port, each with its own copy of the models and its own `max_in_flight`, "
+        "`max_queue_size`, /health and /ready (/metrics adds them all up); default: the usable CPUs.",
+    )
     threads: int | None = Field(
         None,
         ge=1,
-        description="ONNX Runtime threads of a model call that runs alone (calls beside others, of any model, share "
-        "them out); default: the CPUs this process may use.",
+        description="ONNX Runtime threads of a worker's model call that runs alone (calls beside others, of any "
+        "model, share them out); default: the usable CPUs shared out among the `workers`.",
     )
     # Two calls side by side, no batching: what served most pairs/s when measured (docs/benchmarks.md).
     model_calls: int = Field(
@@ -99,12 +109,18 @@ class Settings(BaseSettings):
 
     @model_validator(mode="after")
     def _one_call_per_thread(self) -> "Settings":
-        """`threads` defaults to the usable CPUs, and `model_calls` is at most one per thread: calls
-        beyond that would only take turns on the CPUs."""
+        """`workers` defaults to the usable CPUs and `threads` to each worker's share of them, and
+        `model_calls` is at most one per thread: calls beyond that would only take turns on the CPUs."""
+        if self.workers is None:
+            self.workers = available_cpus()
         if self.threads is None:
-            self.threads = available_cpus()
+            self.threads = max(1, available_cpus() // self.workers)
         self.model_calls = min(self.model_calls, self.threads)
         return self
+
+    def configure_logging(self) -> None:
+        """The service's own log lines (models loaded, warm-up, shutdown) beside uvicorn's."""
+        logging.basicConfig(level=self.log_level.upper(), format="%(asctime)s %(levelname)s %(name)s: %(message)s")
 
     @field_validator("api_key", mode="before")
     @classmethod

@@ -209,14 +209,17 @@ def asgi_scope(path: str, headers: dict[str, str], method: str = "POST") -> dict
 
 
 @contextmanager
-def service_process(tmp_path: Path, model: Path, **settings: str):
+def service_process(tmp_path: Path, model: Path, env: dict[str, str] | None = None, **settings: str):
     """A real `python -m service` on a free loopback port, awaited until ready; yields (process,
-    url, log path) and stops it at the end."""
+    url, log path) and stops it at the end. One worker unless `workers` says otherwise, so that
+    /health speaks for the whole service."""
     import httpx
 
+    settings.setdefault("workers", "1")
     port = free_port()
     log = tmp_path / f"service-{port}.log"
-    env = {**os.environ, "PYTHONPATH": str(REPO), **{f"IFNET_{key.upper()}": value for key, value in settings.items()}}
+    env = {**os.environ, "PYTHONPATH": str(REPO), **(env or {})}
+    env.update({f"IFNET_{key.upper()}": value for key, value in settings.items()})
     command = [sys.executable, "-m", "service", "--port", str(port), "--model-path", str(model)]
     with log.open("w") as output:
         process = subprocess.Popen(command, env=env, stdout=output, stderr=subprocess.STDOUT)

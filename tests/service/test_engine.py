@@ -79,8 +79,17 @@ def test_engine_threads_follow_the_usable_cpus_unless_set(tiny_model):
 def test_model_calls_are_capped_at_one_per_thread():
     assert Settings(threads=4, model_calls=2).model_calls == 2
     assert Settings(threads=1, model_calls=2).model_calls == 1  # two calls would only take turns
-    assert Settings(model_calls=16).model_calls == min(16, available_cpus())
-    assert Settings().threads == available_cpus()
+    assert Settings(workers=1, model_calls=16).model_calls == min(16, available_cpus())
+
+
+def test_workers_follow_the_usable_cpus_and_share_their_threads(monkeypatch):
+    import service.settings
+
+    monkeypatch.setattr(service.settings, "available_cpus", lambda: 4)
+    assert (Settings().workers, Settings().threads) == (4, 1)
+    assert (Settings(workers=1).workers, Settings(workers=1).threads) == (1, 4)
+    assert Settings(workers=3).threads == 1  # the remainder is not worth a second thread in one worker
+    assert Settings(workers=2, threads=3).threads == 3  # a worker's own, when set
 
 
 def test_a_lone_call_runs_on_every_thread_and_calls_beside_it_on_their_share(tiny_model):

@@ -15,6 +15,7 @@ import httpx
 import numpy as np
 import pytest
 from conftest import free_port, service_process
+from prometheus_client.parser import text_string_to_metric_families
 
 from service.client import RegistrationClient, RegistrationError
 from service.formats import read_cloud_file, write_ply
@@ -162,18 +163,53 @@ def test_sigterm_finishes_in_flight_requests_then_exits(tmp_path, tiny_model):
     assert "batchers drained" in text and "Finished server process" in text
 
 
-def test_startup_fails_clearly_without_a_model(tmp_path):
+@pytest.mark.parametrize("workers", ["1", "2"])
+def test_startup_fails_clearly_without_a_model(tmp_path, workers):
     env = {**os.environ, "PYTHONPATH": str(REPO)}
     missing = tmp_path / "missing.onnx"
-    result = subprocess.run(
-        [sys.executable, "-m", "service", "--model-path", str(missing), "--port", str(free_port())],
-        capture_output=True,
-        text=True,
-        env=env,
-        timeout=120,
-    )
+    command = [sys.executable, "-m", "service", "--model-path", str(missing), "--port", str(free_port())]
+    result = subprocess.run([*command, "--workers", workers], capture_output=True, text=True, env=env, timeout=120)
     assert result.returncode == 1
-    assert f"cannot start: model file {missing} does not exist" in result.stderr
+    assert f"cannot start: model file {missing} does not exist" in result.stderr and "Traceback" not in result.stderr
+
+
+def metric_total(text: str, name: str, **labels: str) -> float:
+    """The sum of a metric's samples in Prometheus text whose labels include `labels`."""
+    total = 0.0
+    for family in text_string_to_metric_families(text):
+        for sample in family.samples:
+            if sample.name == name and all(sample.labels.get(k) == v for k, v in labels.items()):
+                total += sample.value
+    return total
+
+
+def test_workers_share_the_port_and_metrics_add_them_up(tmp_path, tiny_model):
+    rng = np.random.default_rng(2)
+    source = rng.normal(size=(300, 3))
+    request = {"source": source.tolist(), "target": (source + [0.1, 0.0, 0.0]).tolist(), "method": "ifnet"}
+
+    def post(_) -> int:  # a connection of its own each, so that the kernel hands them to either worker
+        return httpx.post(f"{url}/register", json=request, timeout=120).status_code
+
+    # The supervisor makes its metrics folder under TMPDIR and removes it when it stops.
+    with service_process(tmp_path, tiny_model, workers="2", env={"TMPDIR": str(tmp_path)}) as (process, url, log):
+        (metrics,) = tmp_path.glob("ifnet-metrics-*")
+        with ThreadPoolExecutor(8) as pool:
+            statuses = list(pool.map(post, range(16)))
+        scrapes = [httpx.get(f"{url}/metrics").text for _ in range(6)]
+        writers = {path.stem.rsplit("_", 1)[1] for path in metrics.glob("counter_*.db")}
+        process.send_signal(signal.SIGTERM)
+        exit_code = process.wait(timeout=60)
+
+    assert statuses == [200] * 16
+    assert len(writers) == 2, f"the requests were not shared out: counters of {writers}"
+    for scrape in scrapes:  # whichever worker answered, it counted both workers' answers
+        assert metric_total(scrape, "ifnet_answers_total", model="object") == 16
+        assert metric_total(scrape, "ifnet_ready") == 1
+    # each scrape is counted once it is answered: the k-th sees the k - 1 before it, whoever served them
+    assert [metric_total(s, "ifnet_http_requests_total", route="/metrics") for s in scrapes] == [0, 1, 2, 3, 4, 5]
+    assert exit_code == 0 and not metrics.exists()
+    assert log.read_text().count("batchers drained") == 2  # each worker drained its own
 
 
 @pytest.mark.parametrize("value", ["0", "lots"])
