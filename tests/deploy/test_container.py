@@ -80,8 +80,8 @@ def _docker_answers() -> bool:
         return False
 
 
-def container_logs(container_id: str) -> str:
-    done = subprocess.run(["docker", "logs", "--tail", "60", container_id], capture_output=True, text=True, timeout=30)
+def container_logs(container_id: str, tail: str = "60") -> str:
+    done = subprocess.run(["docker", "logs", "--tail", tail, container_id], capture_output=True, text=True, timeout=30)
     return done.stdout + done.stderr
 
 
@@ -318,12 +318,14 @@ def test_image_runs_as_non_root_without_torch(container, image):
     assert found["torch_module"] is False, "torch is importable in the image"
     assert not [name for name in found["dists"] if name.startswith("torch")], f"torch installed: {found['dists']}"
     assert "onnxruntime" in found["dists"]
-    # ONNX Runtime is sized to the container's CPU limit (--cpus 2): IFNET_THREADS is not preset.
+    # The service is sized to the container's CPU limit (--cpus 2): neither setting is preset, and it
+    # runs two workers of one ONNX Runtime thread each.
     env = run(["docker", "image", "inspect", "-f", "{{json .Config.Env}}", image], timeout=30).stdout
-    assert "IFNET_THREADS" not in env
-    threads = re.search(r"on (\d+) ORT threads alone", container_logs(cid))
-    assert threads is not None, f"no thread count in the log:\n{container_logs(cid)}"
-    assert int(threads.group(1)) == 2
+    assert "IFNET_THREADS" not in env and "IFNET_WORKERS" not in env
+    logs = container_logs(cid, tail="all")
+    assert len(set(re.findall(r"Started server process \[(\d+)\]", logs))) == 2, f"not two workers:\n{logs}"
+    threads = re.findall(r"on (\d+) ORT threads alone", logs)
+    assert threads and set(threads) == {"1"}, f"thread counts {threads} in the log:\n{logs}"
 
 
 # ---------------------------------------------------------------- docker-compose
