@@ -77,7 +77,8 @@ RUN test -f /opt/app/service/models/object.onnx \
 from service.engine import load_models; from service.settings import Settings; load_models(Settings(threads=1))"
 
 # IFNET_WORKERS and IFNET_THREADS are deliberately unset: the service then runs a worker per CPU
-# this container may use (its cgroup CPU quota, e.g. `--cpus 2`, or the CPU affinity mask).
+# this container may use (its cgroup CPU quota, e.g. `--cpus 2`, or the CPU affinity mask), and a
+# lone model call gets as many threads.
 ENV PATH=/opt/venv/bin:$PATH \
     PYTHONPATH=/opt/app \
     PYTHONUNBUFFERED=1 \

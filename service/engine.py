@@ -98,17 +98,20 @@ def _metadata_count(metadata: dict[str, str], key: str, path: Path, missing: int
 
 
 class RunningCalls:
-    """The model calls under way across every engine that shares this count (all of the service's)."""
+    """This process's model calls under way, across every engine that shares this count (all of the
+    service's), and its registration requests in flight (the service state counts them here)."""
 
     def __init__(self):
         self._count = 0
+        self.requests = 0
         self._lock = threading.Lock()
 
     @contextmanager
     def call(self) -> Iterator[bool]:
-        """Counts one call while it runs; yields whether it started while no other ran."""
+        """Counts one call while it runs; yields whether it runs alone: no other call runs and no
+        other request is in flight (whose parsing and geometry would take a CPU from its threads)."""
         with self._lock:
-            alone = self._count == 0
+            alone = self._count == 0 and self.requests <= 1
             self._count += 1
         try:
             yield alone
@@ -121,12 +124,12 @@ class OnnxEngine:
     """The model in ONNX Runtime with graph optimisations on and intra-op threads sized to this process.
 
     Up to `model_calls` calls may run at once (ONNX Runtime's Run is thread-safe). A call that
-    starts while no other runs gets all `threads` (default: the usable CPUs), the lowest latency
-    for a lone request; one that starts beside others gets threads // model_calls, so that
-    under load the calls share the CPUs out instead of their threads contending for them. Each
-    thread count is its own session (a session's thread count is fixed when it opens); with one
-    call at a time, or one thread, there is just one. Engines that share `running` count each
-    other's calls, so that calls of several models share the CPUs out too.
+    runs alone (`RunningCalls.call`) gets all `threads` (default: the usable CPUs), the lowest
+    latency for a lone request; one that starts beside other calls or requests gets
+    threads // model_calls, so that under load the calls share the CPUs out instead of their
+    threads contending for them. Each thread count is its own session (a session's thread count is
+    fixed when it opens); with one call at a time, or one thread, there is just one. Engines that
+    share `running` count each other's calls, so that calls of several models share the CPUs out too.
     """
 
     def __init__(
@@ -149,7 +152,7 @@ class OnnxEngine:
         self._sessions = [_open_session(path, self.threads)]  # [alone, beside others] where the thread counts differ
         if self.threads_beside_others != self.threads:
             self._sessions.append(_open_session(path, self.threads_beside_others))
-        self._running = running or RunningCalls()
+        self.running = running or RunningCalls()
 
         inputs, outputs = self.session.get_inputs(), self.session.get_outputs()
         missing_in = set(REQUIRED_INPUTS) - {node.name for node in inputs}
@@ -208,7 +211,7 @@ class OnnxEngine:
         return self._sessions[0]
 
     def run(self, source: np.ndarray, target: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        with self._running.call() as alone:
+        with self.running.call() as alone:
             return self._run(self._sessions[0] if alone else self._sessions[-1], source, target)
 
     def warm_up(self, source: np.ndarray, target: np.ndarray) -> None:

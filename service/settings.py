@@ -39,8 +39,8 @@ class Settings(BaseSettings):
     threads: int | None = Field(
         None,
         ge=1,
-        description="ONNX Runtime threads of a worker's model call that runs alone (calls beside others, of any "
-        "model, share them out); default: the usable CPUs shared out among the `workers`.",
+        description="ONNX Runtime threads of a worker's model call that runs alone, with no other call or request "
+        "in its worker (calls beside others, of any model, share them out); default: the usable CPUs.",
     )
     # Two calls side by side, no batching: what served most pairs/s when measured (docs/benchmarks.md).
     model_calls: int = Field(
@@ -109,12 +109,12 @@ class Settings(BaseSettings):
 
     @model_validator(mode="after")
     def _one_call_per_thread(self) -> "Settings":
-        """`workers` defaults to the usable CPUs and `threads` to each worker's share of them, and
-        `model_calls` is at most one per thread: calls beyond that would only take turns on the CPUs."""
+        """`workers` and `threads` default to the usable CPUs, and `model_calls` is at most one per
+        thread: calls beyond that would only take turns on the CPUs."""
         if self.workers is None:
             self.workers = available_cpus()
         if self.threads is None:
-            self.threads = max(1, available_cpus() // self.workers)
+            self.threads = available_cpus()
         self.model_calls = min(self.model_calls, self.threads)
         return self
 

@@ -6,7 +6,7 @@ import time
 from dataclasses import dataclass
 
 from service.batcher import MicroBatcher
-from service.engine import Engine, ModelInfo
+from service.engine import Engine, ModelInfo, RunningCalls
 from service.metrics import LatencyWindow, Metrics
 from service.schemas import DraftDescription, ModelDescription
 from service.settings import Settings
@@ -55,13 +55,25 @@ class ServiceState:
         self.ready = asyncio.Event()  # every model loaded and warmed up: they are served all or none
         self.warmup_error: str | None = None
         self.accepting = True  # False once shutdown has begun
-        self.in_flight = 0  # registration requests admitted and not yet answered (see dependencies.admit)
+        self.running = RunningCalls()  # the engines' own, once they are served
         self.large_json_parse = asyncio.Lock()  # see uploads.parse_json
+
+    @property
+    def in_flight(self) -> int:
+        """Registration requests admitted and not yet answered (see dependencies.admit); counted
+        with the model calls, whose threads depend on it."""
+        return self.running.requests
+
+    @in_flight.setter
+    def in_flight(self, count: int) -> None:
+        self.running.requests = count
 
     def serve(self, engines: list[Engine]) -> None:
         """A batcher for each engine and its draft, in the engines' order (their model calls share
         `model_calls` slots), and its metrics."""
         settings = self.settings
+        if isinstance(running := getattr(engines[0], "running", None), RunningCalls):  # stand-in engines have none
+            self.running = running
         slots = asyncio.Semaphore(settings.model_calls)
 
         def batcher(engine: Engine) -> MicroBatcher:

@@ -319,13 +319,13 @@ def test_image_runs_as_non_root_without_torch(container, image):
     assert not [name for name in found["dists"] if name.startswith("torch")], f"torch installed: {found['dists']}"
     assert "onnxruntime" in found["dists"]
     # The service is sized to the container's CPU limit (--cpus 2): neither setting is preset, and it
-    # runs two workers of one ONNX Runtime thread each.
+    # runs two workers whose lone model call gets two ONNX Runtime threads, and any other call one.
     env = run(["docker", "image", "inspect", "-f", "{{json .Config.Env}}", image], timeout=30).stdout
     assert "IFNET_THREADS" not in env and "IFNET_WORKERS" not in env
     logs = container_logs(cid, tail="all")
     assert len(set(re.findall(r"Started server process \[(\d+)\]", logs))) == 2, f"not two workers:\n{logs}"
-    threads = re.findall(r"on (\d+) ORT threads alone", logs)
-    assert threads and set(threads) == {"1"}, f"thread counts {threads} in the log:\n{logs}"
+    threads = re.findall(r"on (\d+) ORT threads alone and (\d+) beside others", logs)
+    assert threads and set(threads) == {("2", "1")}, f"thread counts {threads} in the log:\n{logs}"
 
 
 # ---------------------------------------------------------------- docker-compose

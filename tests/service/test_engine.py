@@ -82,14 +82,12 @@ def test_model_calls_are_capped_at_one_per_thread():
     assert Settings(workers=1, model_calls=16).model_calls == min(16, available_cpus())
 
 
-def test_workers_follow_the_usable_cpus_and_share_their_threads(monkeypatch):
+def test_workers_and_threads_follow_the_usable_cpus(monkeypatch):
     import service.settings
 
     monkeypatch.setattr(service.settings, "available_cpus", lambda: 4)
-    assert (Settings().workers, Settings().threads) == (4, 1)
-    assert (Settings(workers=1).workers, Settings(workers=1).threads) == (1, 4)
-    assert Settings(workers=3).threads == 1  # the remainder is not worth a second thread in one worker
-    assert Settings(workers=2, threads=3).threads == 3  # a worker's own, when set
+    assert (Settings().workers, Settings().threads) == (4, 4)
+    assert (Settings(workers=1, threads=2).workers, Settings(workers=1, threads=2).threads) == (1, 2)
 
 
 def test_a_lone_call_runs_on_every_thread_and_calls_beside_it_on_their_share(tiny_model):
@@ -111,6 +109,24 @@ def test_a_lone_call_runs_on_every_thread_and_calls_beside_it_on_their_share(tin
     engine.run(source, target)
     engine.run(source, target)  # alone again once both have finished
     assert used == [2, 1, 2]
+
+    # a call of one request among others in flight in its process gets its share too
+    engine.running.requests = 2
+    engine.run(source, target)
+    engine.running.requests = 1
+    engine.run(source, target)
+    assert used == [2, 1, 2, 1, 2]
+
+
+@pytest.mark.anyio
+async def test_the_service_counts_its_requests_in_flight_where_its_engines_see_them(tiny_model):
+    from service.state import ServiceState
+
+    engine = OnnxEngine(tiny_model, threads=2, model_calls=2)
+    state = ServiceState(Settings(workers=1, threads=2))
+    state.serve([engine])
+    state.in_flight += 3
+    assert engine.running.requests == 3 and state.in_flight == 3
 
 
 def test_metadata_is_read(tiny_model):
