@@ -78,6 +78,8 @@ def server_options(settings: Settings) -> dict:
         "port": settings.port,
         "log_level": settings.log_level,
         "timeout_graceful_shutdown": math.ceil(settings.shutdown_timeout_s),  # uvicorn takes whole seconds
+        # The head deadline bounds idle connections; uvicorn's 5 s raced clients' own 5 s keep-alive.
+        "timeout_keep_alive": math.ceil(settings.request_head_timeout_s) + 1,
         "h11_max_incomplete_event_size": settings.max_head_bytes,  # the same bound for a head over several reads
     }
 

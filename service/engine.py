@@ -125,11 +125,11 @@ class OnnxEngine:
 
     Up to `model_calls` calls may run at once (ONNX Runtime's Run is thread-safe). A call that
     runs alone (`RunningCalls.call`) gets all `threads` (default: the usable CPUs), the lowest
-    latency for a lone request; one that starts beside other calls or requests gets
-    threads // model_calls, so that under load the calls share the CPUs out instead of their
-    threads contending for them. Each thread count is its own session (a session's thread count is
-    fixed when it opens); with one call at a time, or one thread, there is just one. Engines that
-    share `running` count each other's calls, so that calls of several models share the CPUs out too.
+    latency for a lone request; any other gets threads // (model_calls x workers), so that under
+    load the calls of every worker share the CPUs out instead of their threads contending for them.
+    Each thread count is its own session (a session's thread count is fixed when it opens); where
+    the two counts are equal there is just one. Engines that share `running` count each other's
+    calls, so that calls of several models share the CPUs out too.
     """
 
     def __init__(
@@ -139,6 +139,7 @@ class OnnxEngine:
         model_calls: int = 1,
         running: RunningCalls | None = None,
         name: str | None = None,
+        workers: int = 1,
     ):
         path = Path(path)
         self.draft: OnnxEngine | None = None  # the model's draft (`load_models` sets it), asked by `auto`
@@ -148,7 +149,8 @@ class OnnxEngine:
             )
         self.model_calls = model_calls
         self.threads = threads or available_cpus()  # of a call that runs alone
-        self.threads_beside_others = max(1, self.threads // model_calls)
+        # The other workers' calls share the CPUs too.
+        self.threads_beside_others = max(1, self.threads // (model_calls * workers))
         self._sessions = [_open_session(path, self.threads)]  # [alone, beside others] where the thread counts differ
         if self.threads_beside_others != self.threads:
             self._sessions.append(_open_session(path, self.threads_beside_others))
@@ -279,10 +281,12 @@ def load_models(settings: Settings) -> list[OnnxEngine]:
     files = model_files(settings)
     engines = []
     for path in files:
-        engine = OnnxEngine(path, settings.threads, settings.model_calls, running)
+        engine = OnnxEngine(path, settings.threads, settings.model_calls, running, workers=settings.workers)
         if draft_file(path).is_file():
             name = f"{engine.info.name}/draft"  # its label in the batcher's metrics
-            engine.draft = OnnxEngine(draft_file(path), settings.threads, settings.model_calls, running, name)
+            engine.draft = OnnxEngine(
+                draft_file(path), settings.threads, settings.model_calls, running, name, settings.workers
+            )
         engines.append(engine)
     if settings.model_path is None:
         strays = sorted(

@@ -74,6 +74,9 @@ def test_engine_threads_follow_the_usable_cpus_unless_set(tiny_model):
     assert (shared.threads, shared.threads_beside_others) == (4, 2)
     single = OnnxEngine(tiny_model, threads=1, model_calls=2)
     assert (single.threads, single.threads_beside_others) == (1, 1)
+    # beside the calls of other workers too: a lone call gets all, any other its share of the service's
+    worker = OnnxEngine(tiny_model, threads=4, model_calls=1, workers=2)
+    assert (worker.threads, worker.threads_beside_others) == (4, 2)
 
 
 def test_model_calls_are_capped_at_one_per_thread():
@@ -82,12 +85,13 @@ def test_model_calls_are_capped_at_one_per_thread():
     assert Settings(workers=1, model_calls=16).model_calls == min(16, available_cpus())
 
 
-def test_workers_and_threads_follow_the_usable_cpus(monkeypatch):
+def test_workers_threads_and_model_calls_follow_the_usable_cpus(monkeypatch):
     import service.settings
 
     monkeypatch.setattr(service.settings, "available_cpus", lambda: 4)
-    assert (Settings().workers, Settings().threads) == (4, 4)
-    assert (Settings(workers=1, threads=2).workers, Settings(workers=1, threads=2).threads) == (1, 2)
+    assert (Settings().workers, Settings().threads, Settings().model_calls) == (4, 4, 1)
+    one = Settings(workers=1, threads=2)
+    assert (one.workers, one.threads, one.model_calls) == (1, 2, 2)
 
 
 def test_a_lone_call_runs_on_every_thread_and_calls_beside_it_on_their_share(tiny_model):

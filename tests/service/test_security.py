@@ -346,6 +346,26 @@ def test_connections_must_send_their_request_head_in_time(tmp_path, tiny_model):
     assert "request head incomplete" in log.read_text()
 
 
+@pytest.mark.slow
+def test_an_idle_connection_lives_until_the_head_deadline_not_less(tmp_path, tiny_model):
+    """Clients keep idle connections for 5 s (httpx) or more; a server that closed them sooner raced
+    their next request, which the client saw as a broken connection. The head deadline (10 s by
+    default) is the one bound on an idle connection."""
+    body = json.dumps({"source": SOURCE.tolist(), "target": TARGET.tolist()}).encode()
+    with service_process(tmp_path, tiny_model) as (_, url, log):
+        kept_alive = http.client.HTTPConnection("127.0.0.1", httpx.URL(url).port, timeout=30)
+        sockets = []
+        for pause_s in (0.0, 6.5):  # past uvicorn's own default keep-alive of 5 s
+            time.sleep(pause_s)
+            kept_alive.request("POST", "/register", body=body, headers={"Content-Type": "application/json"})
+            response = kept_alive.getresponse()
+            assert response.status == 200, response.read()
+            response.read()
+            sockets.append(kept_alive.sock)
+        assert sockets[1] is sockets[0]  # the same connection, never reopened behind the test's back
+        kept_alive.close()
+
+
 def with_padding(head: bytes, size: int) -> bytes:
     """head with one more header whose value is `size` bytes long."""
     return head.replace(b"\r\n\r\n", b"\r\nX-Padding: " + b"p" * size + b"\r\n\r\n")
