@@ -174,20 +174,27 @@ def _prepare(
     count: int,
     options: RegistrationOptions,
     settings: Settings,
-    check: AlignmentClouds | None = None,
+    base: _Prepared | None = None,
 ) -> _Prepared:
+    """The pair made ready for a network of `count` points; `base`, the same pair made ready for
+    another count, lends its checked distinct points and its check's clouds."""
     started = time.perf_counter()
     clouds, sampled, reports = {}, {}, {}
     for name, points in (("source", source), ("target", target)):
-        unique = check_cloud(points, name, settings.min_points, settings.max_cloud_points)
+        if base is None:
+            unique = check_cloud(points, name, settings.min_points, settings.max_cloud_points)
+        else:
+            unique = getattr(base, name)
         indices = sample_indices(unique, count, options.sampling, options.seed, settings.fps_max_input_points)
         clouds[name], sampled[name] = unique, unique[indices]
         reports[name] = CloudReport(len(points), len(points) - len(unique), count, len(unique) < count)
     init = np.eye(4) if options.init is None else options.init
     source_sampled = apply_transform(sampled["source"], *from_matrix(init))
     normalisation = Normalisation(source_sampled, sampled["target"])
-    if check is None:  # the same for every point count: built once per request
+    if base is None:  # the same for every point count: built once per request
         check = AlignmentClouds(*(subset(clouds[name], CHECK_MAX_POINTS) for name in ("source", "target")))
+    else:
+        check = base.check
     return _Prepared(
         source=clouds["source"],
         target=clouds["target"],
@@ -405,7 +412,7 @@ async def register_clouds(
     async def ask(network: Network) -> RegistrationResult:
         count = network.network_points
         if count not in prepared:  # a model exported for another point count; the check's clouds are the same
-            prepared[count] = await run_blocking(_prepare, source, target, count, options, settings, base.check)
+            prepared[count] = await run_blocking(_prepare, source, target, count, options, settings, base)
         prediction = await network.predict(prepared[count].source_network, prepared[count].target_network)
         return await run_blocking(_finish, prepared[count], prediction, network, options)
 

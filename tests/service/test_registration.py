@@ -486,3 +486,23 @@ def test_upsampled_only_when_a_cloud_has_fewer_distinct_points_than_the_network_
     assert (exact.points.source.upsampled, exact.points.source.network_points) == (False, 64)
     assert (short.points.source.upsampled, short.points.source.network_points) == (True, 64)
     assert short.points.target.upsampled is False
+
+
+def test_a_second_point_count_reuses_the_pairs_checked_points(monkeypatch):
+    """A model of another point count gets the pair made ready as from scratch, without checking
+    the clouds for duplicates again or building the check's clouds twice."""
+    import service.registration as registration
+
+    rng = np.random.default_rng(5)
+    source = np.vstack([rng.normal(size=(400, 3)), np.zeros((3, 3))])  # with duplicates
+    target = rng.normal(size=(500, 3))
+    options, settings, _ = pipeline_inputs(64, None)
+    first = registration._prepare(source, target, 64, options, settings)
+    fresh = registration._prepare(source, target, 32, options, settings)
+    checked = []
+    monkeypatch.setattr(registration, "check_cloud", lambda *args: checked.append(args) or args[0])
+    second = registration._prepare(source, target, 32, options, settings, first)
+    assert checked == [] and second.check is first.check and second.source is first.source
+    np.testing.assert_array_equal(second.source_network, fresh.source_network)
+    np.testing.assert_array_equal(second.target_network, fresh.target_network)
+    assert second.points == fresh.points
