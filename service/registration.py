@@ -468,9 +468,10 @@ async def _confirmed_draft(
     A verified answer is confirmed by the guess within AGREEMENT_DEG of it or, where the guess is
     too coarse for that (a few degrees off on noisy clouds), by the guess refined and checked. An
     answer from the guess lies near it by construction, so it stands only if the first answer,
-    refined, does not contradict it (as the model's answer would in the second opinion). An answer
-    more than DRAFT_REACH_DEG from the guess is set aside unrefined: refinement would not bring the
-    two within AGREEMENT_DEG."""
+    refined, does not contradict it (as the model's answer would in the second opinion); where that
+    answer is verified too, the pair is ambiguous (a symmetric shape) and the better fitting of them
+    is the answer, not verified. An answer more than DRAFT_REACH_DEG from the guess is set aside
+    unrefined: refinement would not bring the two within AGREEMENT_DEG."""
     paid: list[dict[str, float]] = []  # the timings of the draft's answers refined and checked
     unrefined: list[Prediction] = []  # the draft's answers set aside unrefined (too far from the guess)
     refined: list[RegistrationResult] = []  # the guess refined and checked, once needed
@@ -500,8 +501,8 @@ async def _confirmed_draft(
         return refined[0].verified and rotation_angle_deg(refined[0].rotation, answer.rotation) <= AGREEMENT_DEG
 
     def stands(answer: RegistrationResult) -> tuple[RegistrationResult, list, None]:
-        others = [timings for timings in paid if timings is not answer.timings_ms]
-        _charged(answer, (others + [refined[0].timings_ms]) if refined else others)
+        spent = paid + [other.timings_ms for other in refined]
+        _charged(answer, [timings for timings in spent if timings is not answer.timings_ms])
         if not refined:  # the guess alone confirmed it: its time still counts
             answer.timings_ms["postprocess_ms"] += features.seconds * 1000.0
         return answer, [], None
@@ -524,7 +525,12 @@ async def _confirmed_draft(
     if not await confirmed(chosen):
         return set_aside()
     own = own or await finish(own_prediction, np.eye(3))  # refined, it may contradict the guess's answer
-    return stands(chosen) if _unless_contradicted(chosen, [chosen, own]).verified else set_aside()
+    if _unless_contradicted(chosen, [chosen, own]).verified:
+        return stands(chosen)
+    if own.verified:  # two verified answers apart: the clouds fit both, whatever else is asked
+        candidates = [chosen, own, *refined]
+        return stands(_unless_contradicted(max(candidates, key=_rank), candidates))
+    return set_aside()
 
 
 def _charged(answer: RegistrationResult, others: list[dict[str, float]]) -> RegistrationResult:
