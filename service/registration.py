@@ -9,7 +9,8 @@ optionally refines it (GICP on up to CHECK_MAX_POINTS of each cloud) and checks 
 (`model.geometry.verify_alignment`). Under `auto` the first model's draft network (the same
 weights over fewer blocks and points, when the repository has one) is asked before the model, for
 the source as it lies and, failing that, turned by feature matching's guess; its answer, always
-refined, stands only when it passes the check and feature matching agrees with it. Where the
+refined, stands only when it passes the check and feature matching agrees with it (and where its
+two answers both pass and disagree, the pair is ambiguous and no model is asked). Where the
 method allows and the answer fails the check, the other networks follow in turn, then the global
 path: feature matching (also a second opinion on a verified answer), then the first network from
 rotated starts.
