@@ -34,7 +34,7 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
         "--workers", type=int, help="processes serving the port (default: the usable CPUs, env IFNET_WORKERS)"
     )
     parser.add_argument(
-        "--threads", type=int, help="ONNX Runtime intra-op threads per worker (default: its share of the usable CPUs)"
+        "--threads", type=int, help="ONNX Runtime threads of a worker's lone model call (default: the usable CPUs)"
     )
     parser.add_argument(
         "--log-level",
