@@ -191,6 +191,17 @@ def free_port() -> int:
         return probe.getsockname()[1]
 
 
+def metric_values(text: str) -> dict[tuple, float]:
+    """Prometheus text as {(sample name, *sorted (label, value) pairs): value}."""
+    from prometheus_client.parser import text_string_to_metric_families
+
+    return {
+        (sample.name, *sorted(sample.labels.items())): sample.value
+        for family in text_string_to_metric_families(text)
+        for sample in family.samples
+    }
+
+
 def asgi_scope(path: str, headers: dict[str, str], method: str = "POST") -> dict:
     return {
         "type": "http",

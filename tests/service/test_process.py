@@ -14,8 +14,7 @@ from pathlib import Path
 import httpx
 import numpy as np
 import pytest
-from conftest import free_port, service_process
-from prometheus_client.parser import text_string_to_metric_families
+from conftest import free_port, metric_values, service_process
 
 from service.client import RegistrationClient, RegistrationError
 from service.formats import read_cloud_file, write_ply
@@ -175,12 +174,10 @@ def test_startup_fails_clearly_without_a_model(tmp_path, workers):
 
 def metric_total(text: str, name: str, **labels: str) -> float:
     """The sum of a metric's samples in Prometheus text whose labels include `labels`."""
-    total = 0.0
-    for family in text_string_to_metric_families(text):
-        for sample in family.samples:
-            if sample.name == name and all(sample.labels.get(k) == v for k, v in labels.items()):
-                total += sample.value
-    return total
+    wanted = set(labels.items())
+    return sum(
+        value for (sample, *pairs), value in metric_values(text).items() if sample == name and wanted <= set(pairs)
+    )
 
 
 def test_workers_share_the_port_and_metrics_add_them_up(tmp_path, tiny_model):

@@ -20,8 +20,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import TINY_MODEL_POINTS, free_port
-from prometheus_client.parser import text_string_to_metric_families
+from conftest import TINY_MODEL_POINTS, free_port, metric_values
 
 from service.app import create_app
 from service.engine import ModelLoadError, OnnxEngine, load_models, model_files
@@ -60,14 +59,6 @@ def repository(tmp_path, tiny_model) -> Path:
     with_points(shutil.copy(tiny_model, folder / "indoor.onnx"), INDOOR_POINTS)
     (folder / "README.txt").write_text("not a model")
     return folder
-
-
-def metric_values(text: str) -> dict[tuple, float]:
-    return {
-        (sample.name, *sorted(sample.labels.items())): sample.value
-        for family in text_string_to_metric_families(text)
-        for sample in family.samples
-    }
 
 
 # ---------------------------------------------------------------- the folder
