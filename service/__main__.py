@@ -92,10 +92,12 @@ def serve_workers(settings: Settings, overrides: dict) -> int:
     from uvicorn.config import STARTUP_FAILURE
     from uvicorn.supervisors import Multiprocess
 
+    from service.metrics import WORKERS_FOLDER_VARIABLE
+
     # The workers are fresh interpreters: they read the flags from the environment, as the settings.
     os.environ.update({f"IFNET_{name.upper()}": str(value) for name, value in overrides.items()})
     metrics = tempfile.mkdtemp(prefix="ifnet-metrics-")
-    os.environ["PROMETHEUS_MULTIPROC_DIR"] = metrics  # read by prometheus_client as each worker imports it
+    os.environ[WORKERS_FOLDER_VARIABLE] = metrics
     try:
         config = uvicorn.Config(
             "service.workers:app",

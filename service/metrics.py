@@ -19,12 +19,14 @@ from starlette.types import ASGIApp, Message, Receive, Scope, Send
 # Methods labelled by name; any other (clients may send made-up ones) is counted as "other".
 HTTP_METHODS = frozenset({"GET", "HEAD", "POST", "PUT", "DELETE", "OPTIONS", "PATCH", "TRACE", "CONNECT"})
 LATENCY_BUCKETS = (0.01, 0.025, 0.05, 0.075, 0.1, 0.15, 0.2, 0.3, 0.5, 0.75, 1.0, 2.0, 5.0, 10.0, 30.0)
+# The folder of every worker's values, which prometheus_client reads as it is imported.
+WORKERS_FOLDER_VARIABLE = "PROMETHEUS_MULTIPROC_DIR"
 
 
 class Metrics:
     """The service's metrics, in a registry of their own so that several apps (tests) can coexist.
 
-    Under several workers (`PROMETHEUS_MULTIPROC_DIR` set by the supervisor before they start),
+    Under several workers (WORKERS_FOLDER_VARIABLE set by the supervisor before they start),
     every worker writes its values to files there and /metrics, whichever worker answers it, adds
     up those of all of them: counts and histograms summed, the queue depth of live workers summed,
     readiness the least of theirs.
@@ -107,7 +109,7 @@ class Metrics:
             metric.labels(name)
 
     def render(self) -> tuple[bytes, str]:
-        if "PROMETHEUS_MULTIPROC_DIR" not in os.environ:
+        if WORKERS_FOLDER_VARIABLE not in os.environ:
             return generate_latest(self.registry), CONTENT_TYPE_LATEST
         every_worker = CollectorRegistry()
         multiprocess.MultiProcessCollector(every_worker)
@@ -116,7 +118,7 @@ class Metrics:
     @staticmethod
     def worker_stopped() -> None:
         """Drops this worker's live gauges (queue depth, readiness) from the sums of the others."""
-        if "PROMETHEUS_MULTIPROC_DIR" in os.environ:
+        if WORKERS_FOLDER_VARIABLE in os.environ:
             multiprocess.mark_process_dead(os.getpid())
 
 
