@@ -151,20 +151,18 @@ def degeneracy(points: np.ndarray, relative_tolerance: float = 1e-4) -> str | No
 
 def farthest_point_sample(points: np.ndarray, count: int, start: int = 0) -> np.ndarray:
     """Indices of `count` points chosen by deterministic farthest-point sampling."""
-    # One contiguous array per coordinate and buffers reused every step: much faster than squaring
-    # [N, 3] rows anew, with the same sums in the same order (same indices).
+    # Coordinates as contiguous rows and buffers reused every step: few numpy calls per step (their
+    # overhead dominates on small clouds), with the same sums in the same order (same indices).
     columns = np.ascontiguousarray(points.T)  # [3, N]
     chosen = np.empty(count, dtype=np.int64)
     chosen[0] = start
     distance = np.full(len(points), np.inf)
-    squared, term = np.empty_like(columns[0]), np.empty_like(columns[0])
+    offsets, squared = np.empty_like(columns), np.empty_like(columns[0])
     for i in range(1, count):
-        centre = columns[:, chosen[i - 1]]
-        np.square(np.subtract(columns[0], centre[0], out=squared), out=squared)
-        for axis in (1, 2):
-            np.add(squared, np.square(np.subtract(columns[axis], centre[axis], out=term), out=term), out=squared)
+        np.square(np.subtract(columns, columns[:, chosen[i - 1], None], out=offsets), out=offsets)
+        np.add(np.add(offsets[0], offsets[1], out=squared), offsets[2], out=squared)
         np.minimum(distance, squared, out=distance)
-        chosen[i] = int(np.argmax(distance))
+        chosen[i] = distance.argmax()
     return chosen
 
 
@@ -323,9 +321,9 @@ def inlier_constraint(points: np.ndarray, normals: np.ndarray) -> float:
     return float(np.linalg.eigvalsh(jacobian.T @ jacobian / len(points))[0])
 
 
-def surface_normals(points: np.ndarray, tree: cKDTree, cloud: np.ndarray, neighbours: int = 12) -> np.ndarray:
-    """Unit normals of `cloud` (indexed by tree) at `points`: the least-spread axis of the neighbours."""
-    _, index = tree.query(points, k=min(neighbours, len(cloud)))
+def surface_normals(cloud: np.ndarray, tree: cKDTree, neighbours: int = 12) -> np.ndarray:
+    """Unit normals of `cloud` (indexed by tree) at its points: the least-spread axis of the neighbours."""
+    _, index = tree.query(cloud, k=min(neighbours, len(cloud)))
     local = cloud[index] - cloud[index].mean(axis=1, keepdims=True)
     _, vectors = np.linalg.eigh(np.einsum("nki,nkj->nij", local, local))
     return vectors[:, :, 0]
@@ -401,7 +399,7 @@ class GicpClouds(NamedTuple):
 
 class AlignmentClouds:
     """One pair's clouds made ready once for every refinement and check of its answers: the point
-    spacing, scipy's kd-tree of the target (scores), and small_gicp's clouds with their normals and
+    spacing, scipy's kd-tree of the target and its normals (scores), and small_gicp's clouds with their normals and
     covariances and its kd-tree of the target (refinement). Never changed after construction, so
     threads may share it; building it takes about as long as a few GICP iterations."""
 
@@ -412,6 +410,7 @@ class AlignmentClouds:
         self.target = np.ascontiguousarray(target, dtype=np.float64)
         self.spacing = max(point_spacing(self.source), point_spacing(self.target)) if spacing is None else spacing
         self.target_tree = cKDTree(self.target)
+        self.target_normals = surface_normals(self.target, self.target_tree)  # once, for every score
         source_cloud, target_cloud = small_gicp.PointCloud(self.source), small_gicp.PointCloud(self.target)
         target_gicp_tree = small_gicp.KdTree(target_cloud)
         small_gicp.estimate_normals_covariances(target_cloud, target_gicp_tree, num_neighbors=20)
@@ -427,7 +426,7 @@ class AlignmentClouds:
         backward, _ = cKDTree(moved).query(self.target, k=1, distance_upper_bound=threshold)
         inliers = np.isfinite(forward)
         matched = self.target[matches[inliers]]
-        normals = surface_normals(matched, self.target_tree, self.target)
+        normals = self.target_normals[matches[inliers]]
         return AlignmentScore(
             spacing=float(self.spacing),
             threshold=float(threshold),
