@@ -5,6 +5,7 @@
     python -m bench.compare peers --modelnet --scans --no-truth-pairs --scenes indoor outdoor \
         --request 'indoor={"model": "indoor", "method": "ifnet"}'           # the paper's scene protocols
     python -m bench.compare peers --request auto='{"method": "auto", "refine": true}'   # one more service row
+    python -m bench.compare peers --setting one-call=model_calls=1   # each service row again on another server
     python -m bench.compare models service/models/object.onnx /tmp/new.onnx    # ONNX files: time and accuracy
     python -m bench.compare models service/models/object.onnx service/models/drafts/object.onnx --refine \
         --sets same:clean same:jitter same:outliers unseen:clean                # and after refinement
@@ -14,6 +15,7 @@ its per-pair ratio to each peer (median over the pairs), since the machine's spe
 """
 
 import argparse
+import contextlib
 import json
 import statistics
 import sys
@@ -48,10 +50,15 @@ def timed(function, *args, **kwargs):
 class Methods:
     """Each method maps a pair to {ms, rotation_deg, translation, right, ...}; inputs are prepared untimed."""
 
-    def __init__(self, args, service: harness.Service):
+    def __init__(self, args, services: dict[str, harness.Service]):
+        """`services`: the default server first, then one per `--setting`, whose rows are `REQUEST@SETTING`."""
         self.network = harness.Network(args.model, args.threads)
-        self.client = httpx.Client(base_url=service.url, timeout=600, trust_env=False)
-        self.requests = dict(spec.split("=", 1) for spec in args.request)
+        clients = {name: httpx.Client(base_url=s.url, timeout=600, trust_env=False) for name, s in services.items()}
+        default, *others = clients
+        self.requests = {}  # row -> (client, options)
+        for name, options in (spec.split("=", 1) for spec in args.request):
+            self.requests[name] = (clients[default], options)
+            self.requests |= {f"{name}@{setting}": (clients[setting], options) for setting in others}
         self.tight_max_points = args.tight_max_points
         self.names = ["network", *self.requests, *PEERS, "open3d-tight"]
 
@@ -61,7 +68,7 @@ class Methods:
             (rotation, translation), ms = timed(self.network.call, feeds)
             return {"ms": ms, **harness.errors(pair, *self.network.to_user_units(normalisation, rotation, translation))}
         if name in self.requests:
-            return self.request(pair, prepared["body"], self.requests[name])
+            return self.request(pair, prepared["body"], *self.requests[name])
         if name == "open3d-tight":
             if max(len(pair.source), len(pair.target)) > self.tight_max_points:
                 return None
@@ -73,9 +80,9 @@ class Methods:
             (rotation, translation), ms = timed(peer, pair.source, pair.target, pair.voxel)
         return {"ms": ms, **harness.errors(pair, rotation, translation)}
 
-    def request(self, pair: harness.Pair, body: bytes, options: str) -> dict:
+    def request(self, pair: harness.Pair, body: bytes, client: httpx.Client, options: str) -> dict:
         headers = {"content-type": "application/x-npz"}
-        response, ms = timed(self.client.post, "/register", params={"options": options}, content=body, headers=headers)
+        response, ms = timed(client.post, "/register", params={"options": options}, content=body, headers=headers)
         if response.status_code != 200:
             return {"ms": ms, "status": response.status_code, "right": False, "error": response.text[:300]}
         answer = response.json()
@@ -105,10 +112,12 @@ def summary(pairs: list[dict], names: list[str]) -> dict:
         if not rows:
             continue
         done = [row for row, _ in rows if "rotation_deg" in row]
+        # A row on another server (`REQUEST@SETTING`) is also timed against the same request on the default one.
+        bases = [*PEERS, *([name.partition("@")[0]] if "@" in name else [])]
         ratios = {
-            peer: statistics.median(row["ms"] / others[peer]["ms"] for row, others in rows)
-            for peer in PEERS
-            if all(others.get(peer) for _, others in rows)
+            base: statistics.median(row["ms"] / others[base]["ms"] for row, others in rows)
+            for base in bases
+            if all(others.get(base) for _, others in rows)
         }
         result[name] = {
             "pairs": len(rows),
@@ -174,8 +183,11 @@ def peers(args) -> int:
         sets["real scans"] = [harness.scan_pair(spec, args.seed, max_angle_deg=args.scan_angle) for spec in args.scans]
     if args.truth_pairs:
         sets["real pairs with ground truth"] = harness.truth_pairs()
-    with harness.Service() as service:
-        methods = Methods(args, service)
+    settings = harness.parse_settings(args.setting)
+    with contextlib.ExitStack() as stack:
+        services = {"defaults": stack.enter_context(harness.Service())}
+        services |= {name: stack.enter_context(harness.Service(**values)) for name, values in settings.items()}
+        methods = Methods(args, services)
         warm = next(iter(sets.values()))[0]
         prepared = {
             "feeds": methods.network.prepare(warm.source, warm.target),
@@ -185,9 +197,10 @@ def peers(args) -> int:
             methods.run(name, warm, prepared)
         record = {
             **harness.run_header(),
-            "model": service.model(),
+            "model": services["defaults"].model(),
             "threads": args.threads,
-            "requests": methods.requests,
+            "requests": {name: options for name, (_, options) in methods.requests.items() if "@" not in name},
+            "settings": settings,
             "scan_angle_deg": args.scan_angle,
         }
         record["right"] = {
@@ -285,6 +298,12 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--scan-angle", type=float, default=30.0, help="largest rotation of a scan pair, degrees")
     p.add_argument("--truth-pairs", action=argparse.BooleanOptionalAction, default=True, help="the real indoor pairs")
     p.add_argument("--request", action="append", default=None, help="NAME=JSON options: one service row each")
+    p.add_argument(
+        "--setting",
+        action="append",
+        default=[],
+        help="NAME=KEY=VALUE[,KEY=VALUE]: IFNET_* of one more server, asked every request too (rows REQUEST@NAME)",
+    )
     p.add_argument("--tight-max-points", type=int, default=5000, help="open3d-tight only on pairs this small")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--out", type=Path, default=harness.RESULTS / "compare.json")

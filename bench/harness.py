@@ -101,6 +101,14 @@ class Service:
         return {"version": metadata["versions"][0], **metadata.get("parameters", {})}
 
 
+def parse_settings(entries: list[str]) -> dict[str, dict[str, str]]:
+    """`--setting NAME=KEY=VALUE[,KEY=VALUE]` entries -> {NAME: {KEY: VALUE}}: IFNET_* of one more server each."""
+    return {
+        name: dict(item.split("=", 1) for item in spec.split(",") if item)
+        for name, _, spec in (entry.partition("=") for entry in entries)
+    }
+
+
 def npz_body(source: np.ndarray, target: np.ndarray) -> bytes:
     stream = io.BytesIO()
     np.savez(stream, source=source.astype(np.float32), target=target.astype(np.float32))

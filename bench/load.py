@@ -146,10 +146,7 @@ class Sampler:
 
 def scaling(args) -> int:
     payloads = bodies()
-    settings = {"defaults": {}} | {
-        name: dict(item.split("=", 1) for item in spec.split(",") if item)
-        for name, _, spec in (entry.partition("=") for entry in args.setting)
-    }
+    settings = {"defaults": {}} | harness.parse_settings(args.setting)
     services = {name: harness.Service(**values) for name, values in settings.items()}
     try:
         for service in services.values():

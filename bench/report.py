@@ -57,6 +57,8 @@ def compare(
     lines = [f"## {title}", "", *provenance(record)]
     lines += [f"right: rotation error <= {right['rotation_deg']} deg and translation error <= "]
     lines[-1] += f"{right['translation_share_of_extent']} x extent; service rows' options: {cell(record['requests'])}"
+    if record.get("settings"):
+        lines[-1] += f"; rows REQUEST@NAME on a server with the IFNET_* settings {cell(record['settings'])}"
     lines.append("")
     for name, data in record["sets"].items():
         summary = data["summary"]
@@ -85,6 +87,10 @@ def compare(
             ]
             lines += table(["pair", "points", *(f"{m} rotation error (deg)" for m in methods)], rows)
     return lines
+
+
+def settings(record: dict) -> list[str]:
+    return compare(record, "Service settings: the same requests on servers with other IFNET_* settings")
 
 
 def scaling(record: dict) -> list[str]:
@@ -129,7 +135,7 @@ def overload(record: dict) -> list[str]:
     return lines + table(["measure", "value"], rows)
 
 
-RENDER = {"compare": compare, "scenes": scenes, "scaling": scaling, "overload": overload}
+RENDER = {"compare": compare, "scenes": scenes, "settings": settings, "scaling": scaling, "overload": overload}
 
 
 def main() -> int:
