@@ -10,8 +10,9 @@
     python -m bench.compare models service/models/object.onnx service/models/drafts/object.onnx --refine \
         --sets same:clean same:jitter same:outliers unseen:clean                # and after refinement
 
-Every method meets every pair, in an order rotated from pair to pair; a method's time is read as
-its per-pair ratio to each peer (median over the pairs), since the machine's speed drifts.
+Every method meets every pair, in an order rotated from pair to pair and reversed every other pair;
+a method's time is read as its per-pair ratio to each peer (median over the pairs), since the
+machine's speed drifts.
 """
 
 import argparse
@@ -143,9 +144,11 @@ def run_set(methods: Methods, pairs: list[harness.Pair], rotation_start: int) ->
             "feeds": methods.network.prepare(pair.source, pair.target),
             "body": harness.npz_body(pair.source, pair.target),
         }
-        shift = (rotation_start + index) % len(methods.names)
+        # Rotated from pair to pair, and reversed every other pair: no method always runs right after another.
+        names = methods.names if index % 2 == 0 else methods.names[::-1]
+        shift = (rotation_start + index) % len(names)
         results = {}
-        for name in methods.names[shift:] + methods.names[:shift]:
+        for name in names[shift:] + names[:shift]:
             results[name] = methods.run(name, pair, prepared)
         rows.append(
             {
