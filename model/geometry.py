@@ -357,6 +357,12 @@ class Verification(NamedTuple):
     score: AlignmentScore
     drift: float  # RMS move of the source points under refine(), in point spacings
 
+    @property
+    def unpinned(self) -> bool:
+        """Failed on the constraint alone: the answer fits and has settled, but the matching points
+        would let it slide (a plane with little on it), so the clouds cannot tell it from its neighbours."""
+        return not self.verified and judge(self.score._replace(constraint=MIN_CONSTRAINT), self.drift).verified
+
 
 def verify_alignment(
     source: np.ndarray,

@@ -10,7 +10,9 @@ optionally refines it (GICP on up to CHECK_MAX_POINTS of each cloud) and checks 
 weights over fewer blocks and points, when the repository has one) is asked before the model, for
 the source as it lies and, failing that, turned by feature matching's guess; its answer, always
 refined, stands only when it passes the check and feature matching agrees with it (and where its
-two answers both pass and disagree, the pair is ambiguous and no model is asked). Where the
+two answers both pass and disagree, the pair is ambiguous and no model is asked; where it fails the
+check only because the clouds cannot pin the motion down and feature matching agrees, it stands
+unverified). Where the
 method allows and the answer fails the check, the other networks follow in turn, then the global
 path: feature matching (also a second opinion on a verified answer), then the first network from
 rotated starts.
@@ -132,6 +134,7 @@ class RegistrationResult:
     fitness_threshold: float
     verified: bool  # the answer passed the check (model.geometry.verify_alignment)
     reason: str | None  # why not, when verified is False
+    unpinned: bool  # failed the check on the constraint alone (Verification.unpinned); not in the response
     stage: "Stage"  # which part of the pipeline gave the answer
     model: str  # whose network gave it (for `features`, the request's first network's)
     points: CloudReports
@@ -283,6 +286,7 @@ def _result(
         fitness_threshold=threshold,
         verified=chosen.verification.verified,
         reason=chosen.verification.reason,
+        unpinned=chosen.verification.unpinned,
         stage=stage,
         model=model,
         points=prepared.points,
@@ -471,8 +475,11 @@ async def _confirmed_draft(
     answer from the guess lies near it by construction, so it stands only if the first answer,
     refined, does not contradict it (as the model's answer would in the second opinion); where that
     answer is verified too, the pair is ambiguous (a symmetric shape) and the better fitting of them
-    is the answer, not verified. An answer more than DRAFT_REACH_DEG from the guess is set aside
-    unrefined: refinement would not bring the two within AGREEMENT_DEG."""
+    is the answer, not verified. A first answer that fails the check only on its constraint
+    (unpinned: it fits and has settled, but the clouds would let it slide) stands unverified where
+    the guess agrees with it: answers near it would fail alike, and one far from it would contradict
+    both methods. An answer more than DRAFT_REACH_DEG from the guess is set aside unrefined:
+    refinement would not bring the two within AGREEMENT_DEG."""
     paid: list[dict[str, float]] = []  # the timings of the draft's answers refined and checked
     unrefined: list[Prediction] = []  # the draft's answers set aside unrefined (too far from the guess)
     refined: list[RegistrationResult] = []  # the guess refined and checked, once needed
@@ -493,13 +500,14 @@ async def _confirmed_draft(
         return answer
 
     async def confirmed(answer: RegistrationResult) -> bool:
-        if not answer.verified:
-            return False
-        if _confirms(features, answer):
+        """Feature matching's guess agrees with the answer: as it is, or refined and judged alike
+        (verified for a verified answer, unpinned for an unpinned one)."""
+        if rotation_angle_deg(answer.rotation, features.rotation) <= AGREEMENT_DEG:
             return True
         if not refined:
             refined.append(await run_blocking(_finish_features, prepared, features, draft.model, options))
-        return refined[0].verified and rotation_angle_deg(refined[0].rotation, answer.rotation) <= AGREEMENT_DEG
+        alike = refined[0].verified if answer.verified else refined[0].unpinned
+        return alike and rotation_angle_deg(refined[0].rotation, answer.rotation) <= AGREEMENT_DEG
 
     def stands(answer: RegistrationResult) -> tuple[RegistrationResult, list, None]:
         spent = paid + [other.timings_ms for other in refined]
@@ -516,6 +524,10 @@ async def _confirmed_draft(
     own = await finish(own_prediction, np.eye(3)) if near else None
     if own is not None and own.verified:
         return stands(own) if await confirmed(own) else set_aside()  # else the guess contradicts it
+    if own is not None and own.unpinned and await confirmed(own):
+        # Two methods agree on a pose the clouds cannot pin down: any answer near it would fail the
+        # check the same way, and one far from it would contradict them both. It stands, not verified.
+        return stands(own)
     start = features.rotation @ prepared.init[:3, :3].T  # the guess's turn of the network's source
     if np.allclose(start, np.eye(3)):  # no turn (feature matching found nothing): the same call again
         return set_aside()
@@ -523,7 +535,7 @@ async def _confirmed_draft(
     if not near:
         return set_aside()
     chosen = await finish(prediction, start)
-    if not await confirmed(chosen):
+    if not (chosen.verified and await confirmed(chosen)):
         return set_aside()
     own = own or await finish(own_prediction, np.eye(3))  # refined, it may contradict the guess's answer
     if _unless_contradicted(chosen, [chosen, own]).verified:

@@ -110,6 +110,21 @@ def test_judge_names_each_failure():
     assert not judge(good, float("nan")).verified
 
 
+def test_an_answer_failing_on_the_constraint_alone_is_unpinned():
+    """A plane laid on itself fits and has settled, but nothing stops it sliding: unpinned. An
+    answer that fails on anything else, or passes, is not."""
+    plane = grid(0.05)
+    on_itself = verify_alignment(plane, plane, np.eye(3), np.zeros(3))
+    assert not on_itself.verified and "pin" in on_itself.reason and on_itself.unpinned
+    lifted = verify_alignment(plane, plane, np.eye(3), np.array([0.0, 0.0, 0.5]))  # no point matches
+    assert not lifted.verified and not lifted.unpinned
+    source, target, rotation, translation = pair()
+    right = verify_alignment(source, target, rotation, translation)
+    assert right.verified and not right.unpinned
+    unsettled = right._replace(verified=False, drift=2 * MAX_DRIFT_SPACINGS)
+    assert not unsettled._replace(score=right.score._replace(constraint=0.0)).unpinned
+
+
 @pytest.mark.parametrize("method", ["PLANE_ICP", "ICP", "GICP"])
 def test_refine_recovers_a_few_degrees_at_the_spacing_distance(method):
     source, target, rotation, translation = pair(jitter=0.005)

@@ -322,6 +322,46 @@ def test_a_draft_answer_from_the_guess_does_not_stand_where_its_own_answer_contr
     assert not result.verified and result.reason.startswith("ambiguous")
 
 
+def table_top(rng: np.random.Generator) -> np.ndarray:
+    """A wide table with a low box on it: most matching points lie on one plane, so a right answer
+    fits and settles but fails the check on its constraint (unpinned), as on indoor crops."""
+    table = np.column_stack([rng.uniform(-1.0, 1.0, (5000, 2)), np.zeros(5000)])
+    box = rng.uniform([-0.1, -0.1, 0.0], [0.1, 0.1, 0.02], (100, 3))
+    return np.concatenate([table, box])
+
+
+@pytest.mark.parametrize(("guess_turn_deg", "stands"), [(2.0, True), (90.0, False)])
+def test_an_unpinned_draft_answer_stands_unverified_where_feature_matching_agrees(monkeypatch, guess_turn_deg, stands):
+    """The draft's answer fails the check only because the clouds let it slide. Where feature
+    matching's guess agrees with it, it is the answer, not verified, and no model is asked: any
+    answer near it would fail alike. Where the guess disagrees, the pipeline goes on to the model."""
+    from service import registration
+
+    points = table_top(np.random.default_rng(3))
+    truth = euler_to_matrix([20.0, 5.0, -5.0])
+    guess = euler_to_matrix([guess_turn_deg, 0.0, 0.0]) @ truth
+    monkeypatch.setattr(registration, "feature_match", lambda *args: (guess, np.zeros(3)))
+    asked = []
+
+    def asking(name):
+        async def predict(source_n, target_n):
+            asked.append(name)
+            return Prediction(*kabsch(source_n.astype(np.float64), target_n.astype(np.float64)))
+
+        return predict
+
+    options, settings, _ = pipeline_inputs(None, None, method="auto")
+    draft = Network("object", 384, asking("draft"), "draft")
+    networks = [Network("object", 768, asking("model"), draft=draft)]
+    target = apply_transform(points, truth, np.zeros(3))
+    result = asyncio.run(register_clouds(points, target, options, settings, networks))
+    if stands:
+        assert (result.stage, result.verified, asked) == ("draft", False, ["draft"])
+        assert "pin" in result.reason and rotation_angle_deg(result.rotation, truth) < 0.5
+    else:
+        assert "model" in asked
+
+
 def test_feature_matching_that_agrees_with_a_verified_answer_is_not_refined_again(real_scans, monkeypatch):
     """Its guess within AGREEMENT_DEG of the verified answer confirms it as it is; a guess further off
     is refined and checked (here it then fits too poorly to contradict the answer)."""
