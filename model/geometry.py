@@ -405,9 +405,9 @@ class GicpClouds(NamedTuple):
 
 class AlignmentClouds:
     """One pair's clouds made ready once for every refinement and check of its answers: the point
-    spacing, scipy's kd-tree of the target and its normals (scores), and small_gicp's clouds with their normals and
-    covariances and its kd-tree of the target (refinement). Never changed after construction, so
-    threads may share it; building it takes about as long as a few GICP iterations."""
+    spacing, scipy's kd-tree of the target and its normals (scores), and small_gicp's clouds with
+    their normals and covariances and its kd-tree of the target (refinement). Never changed after
+    construction, so threads may share it; building it takes about as long as a few GICP iterations."""
 
     def __init__(self, source: np.ndarray, target: np.ndarray, spacing: float | None = None):
         import small_gicp  # imported here so that the rest of this module needs only numpy/scipy

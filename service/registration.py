@@ -12,10 +12,9 @@ the source as it lies and, failing that, turned by feature matching's guess; its
 refined, stands only when it passes the check and feature matching agrees with it (and where its
 two answers both pass and disagree, the pair is ambiguous and no model is asked; where it fails the
 check only because the clouds cannot pin the motion down and feature matching agrees, it stands
-unverified). Where the
-method allows and the answer fails the check, the other networks follow in turn, then the global
-path: feature matching (also a second opinion on a verified answer), then the first network from
-rotated starts.
+unverified). Where the method allows and the answer fails the check, the other networks follow in
+turn, then the global path: feature matching (also a second opinion on a verified answer), then
+the first network from rotated starts.
 `register_pairs` runs a request's pairs through it and the models' batchers.
 """
 
