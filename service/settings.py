@@ -42,14 +42,14 @@ class Settings(BaseSettings):
         description="ONNX Runtime threads of a worker's model call that runs alone, with no other call or request "
         "in its worker (calls beside others, of any model, share them out); default: the usable CPUs.",
     )
-    # One call per thread in each worker: a lone request's fan-out (the rotated starts, the other
-    # models) runs side by side on one thread per call. No batching: what served most pairs/s when measured.
+    # One call per CPU in the whole service, no batching: what served most pairs/s when measured.
     model_calls: int | None = Field(
         None,
         ge=1,
         le=16,
         description="Model calls a worker runs at once, whatever their models (at most one per thread): one that "
-        "runs alone gets all `threads`, any other `threads` / (model_calls x workers); default: `threads`.",
+        "runs alone gets all `threads`, any other `threads` / (model_calls x workers); default: `threads` shared "
+        "out among the workers (2 with one worker on 2 CPUs, 1 with two).",
     )
     max_batch_size: int = Field(1, ge=1, le=64, description="Most requests run in one model call.")
     max_batch_delay_ms: float = Field(
@@ -110,13 +110,16 @@ class Settings(BaseSettings):
 
     @model_validator(mode="after")
     def _one_call_per_thread(self) -> "Settings":
-        """`workers` and `threads` default to the usable CPUs and `model_calls` to `threads`, and
-        `model_calls` is at most one per thread: calls beyond that would only take turns on the CPUs."""
+        """`workers` and `threads` default to the usable CPUs and `model_calls` to a worker's share of
+        the threads, and `model_calls` is at most one per thread: calls beyond that would only take
+        turns on the CPUs."""
         if self.workers is None:
             self.workers = available_cpus()
         if self.threads is None:
             self.threads = available_cpus()
-        self.model_calls = min(self.model_calls or self.threads, self.threads)
+        if self.model_calls is None:
+            self.model_calls = max(1, self.threads // self.workers)
+        self.model_calls = min(self.model_calls, self.threads)
         return self
 
     def configure_logging(self) -> None:

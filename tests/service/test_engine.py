@@ -89,7 +89,7 @@ def test_workers_threads_and_model_calls_follow_the_usable_cpus(monkeypatch):
     import service.settings
 
     monkeypatch.setattr(service.settings, "available_cpus", lambda: 4)
-    assert (Settings().workers, Settings().threads, Settings().model_calls) == (4, 4, 4)
+    assert (Settings().workers, Settings().threads, Settings().model_calls) == (4, 4, 1)
     one = Settings(workers=1, threads=2)
     assert (one.workers, one.threads, one.model_calls) == (1, 2, 2)
 
