@@ -5,7 +5,7 @@
     python -m bench.compare peers --modelnet --scans --no-truth-pairs --scenes indoor outdoor \
         --request 'indoor={"model": "indoor", "method": "ifnet"}'           # the paper's scene protocols
     python -m bench.compare peers --request auto='{"method": "auto", "refine": true}'   # one more service row
-    python -m bench.compare peers --setting one-call=model_calls=1   # each service row again on another server
+    python -m bench.compare peers --setting two-calls=model_calls=2   # each service row again on another server
     python -m bench.compare models service/models/object.onnx /tmp/new.onnx    # ONNX files: time and accuracy
     python -m bench.compare models service/models/object.onnx service/models/drafts/object.onnx --refine \
         --sets same:clean same:jitter same:outliers unseen:clean                # and after refinement
