@@ -431,8 +431,8 @@ class AlignmentClouds:
         forward, matches = self.target_tree.query(moved, k=1, distance_upper_bound=threshold)
         backward, _ = cKDTree(moved).query(self.target, k=1, distance_upper_bound=threshold)
         inliers = np.isfinite(forward)
-        matched = self.target[matches[inliers]]
-        normals = self.target_normals[matches[inliers]]
+        matched_index = matches[inliers]
+        matched, normals = self.target[matched_index], self.target_normals[matched_index]
         return AlignmentScore(
             spacing=float(self.spacing),
             threshold=float(threshold),

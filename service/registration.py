@@ -501,7 +501,7 @@ async def _confirmed_draft(
     async def confirmed(answer: RegistrationResult) -> bool:
         """Feature matching's guess agrees with the answer: as it is, or refined and judged alike
         (verified for a verified answer, unpinned for an unpinned one)."""
-        if rotation_angle_deg(answer.rotation, features.rotation) <= AGREEMENT_DEG:
+        if _confirms(features, answer):
             return True
         if not refined:
             refined.append(await run_blocking(_finish_features, prepared, features, draft.model, options))
@@ -555,8 +555,8 @@ def _charged(answer: RegistrationResult, others: list[dict[str, float]]) -> Regi
 
 
 def _confirms(guess: _FeatureGuess, answer: RegistrationResult) -> bool:
-    """Feature matching's guess confirms a verified answer when it lies within AGREEMENT_DEG of it."""
-    return answer.verified and rotation_angle_deg(answer.rotation, guess.rotation) <= AGREEMENT_DEG
+    """Feature matching's guess lies within AGREEMENT_DEG of the answer (the caller judges the answer)."""
+    return rotation_angle_deg(answer.rotation, guess.rotation) <= AGREEMENT_DEG
 
 
 def _unless_contradicted(best: RegistrationResult, answers: list[RegistrationResult]) -> RegistrationResult:
