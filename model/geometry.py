@@ -334,16 +334,23 @@ class Verdict(NamedTuple):
     reason: str | None  # why not, when verified is False
 
 
+def missed(score: AlignmentScore) -> str | None:
+    """Why the score fails whatever its drift: too few matching points, or too little overlap."""
+    if score.inliers < MIN_INLIERS:
+        return f"only {score.inliers} points match within {score.threshold:.3g}"
+    if min(score.fitness, score.overlap) < MIN_FITNESS:
+        return f"low overlap: fitness {score.fitness:.2f}, reverse {score.overlap:.2f}"
+    return None
+
+
 def judge(score: AlignmentScore, drift: float) -> Verdict:
     """The verdict on a score and its drift (how far refine() moves the answer, in point spacings).
 
     Every rule is one failure mode of a wrong answer; a right answer passes all of them, a right
     answer a refinement would still improve may be flagged (flagging it is the safe error).
     """
-    if score.inliers < MIN_INLIERS:
-        return Verdict(False, f"only {score.inliers} points match within {score.threshold:.3g}")
-    if min(score.fitness, score.overlap) < MIN_FITNESS:
-        return Verdict(False, f"low overlap: fitness {score.fitness:.2f}, reverse {score.overlap:.2f}")
+    if (reason := missed(score)) is not None:
+        return Verdict(False, reason)
     if score.constraint < MIN_CONSTRAINT:
         return Verdict(False, f"the matching points do not pin the motion down (constraint {score.constraint:.3f})")
     if not drift <= MAX_DRIFT_SPACINGS:
@@ -355,13 +362,15 @@ class Verification(NamedTuple):
     verified: bool
     reason: str | None
     score: AlignmentScore
-    drift: float  # RMS move of the source points under refine(), in point spacings
+    drift: float | None  # RMS move of the source points under refine(), in point spacings; None for a miss
 
     @property
     def unpinned(self) -> bool:
         """Failed on the constraint alone: the answer fits and has settled, but the matching points
         would let it slide (a plane with little on it), so the clouds cannot tell it from its neighbours."""
-        return not self.verified and judge(self.score._replace(constraint=MIN_CONSTRAINT), self.drift).verified
+        if self.verified or self.drift is None:
+            return False
+        return judge(self.score._replace(constraint=MIN_CONSTRAINT), self.drift).verified
 
 
 def verify_alignment(
@@ -445,8 +454,11 @@ class AlignmentClouds:
 
     def verify(self, rotation: np.ndarray, translation: np.ndarray) -> Verification:
         """Is (R, t) right? Scores it at the clouds' point spacing, refines it once to see whether it
-        has settled, and judges both (judge). Call it on the final answer, refined or not."""
+        has settled, and judges both (judge). Call it on the final answer, refined or not. A score
+        that fails on its own (missed) is not refined: where it would settle cannot save it."""
         score = self.score(rotation, translation)
+        if (reason := missed(score)) is not None:
+            return Verification(False, reason, score, None)
         refined_rotation, refined_translation, _ = self.refine(rotation, translation, max_seconds=CHECK_REFINE_SECONDS)
         moved = apply_transform(self.source, rotation, translation)
         shift = apply_transform(self.source, refined_rotation, refined_translation) - moved

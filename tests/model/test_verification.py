@@ -12,6 +12,7 @@ from model.geometry import (
     apply_transform,
     inlier_constraint,
     judge,
+    missed,
     point_spacing,
     refine,
     rotation_angle_deg,
@@ -123,6 +124,24 @@ def test_an_answer_failing_on_the_constraint_alone_is_unpinned():
     assert right.verified and not right.unpinned
     unsettled = right._replace(verified=False, drift=2 * MAX_DRIFT_SPACINGS)
     assert not unsettled._replace(score=right.score._replace(constraint=0.0)).unpinned
+
+
+def test_a_miss_is_judged_without_refining_it(monkeypatch):
+    """An answer with too few matching points or too little overlap fails whatever it settles to: the
+    check gives the verdict it would give after refining, without refining (None for its drift)."""
+    source, target, rotation, translation = pair()
+    clouds = AlignmentClouds(source, target)
+    turned_far = turned(rotation, translation, 60.0, apply_transform(source, rotation, translation).mean(axis=0))
+    misses = [(rotation, translation + 10.0), turned_far]
+    refined = []
+    monkeypatch.setattr(clouds, "refine", lambda *args, **kwargs: refined.append(args) or (*args[:2], 0))
+    for answer in misses:
+        verdict = clouds.verify(*answer)
+        score = clouds.score(*answer)
+        assert missed(score) is not None and verdict.drift is None and not verdict.unpinned
+        assert (verdict.verified, verdict.reason) == tuple(judge(score, 0.0))
+    assert refined == [], "a miss was refined"
+    assert clouds.verify(rotation, translation).verified and len(refined) == 1  # a fit is refined once
 
 
 @pytest.mark.parametrize("method", ["PLANE_ICP", "ICP", "GICP"])
