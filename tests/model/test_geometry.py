@@ -78,6 +78,8 @@ def test_remove_duplicates_keeps_first_occurrences_in_order():
     copies = rng.integers(0, 2000, 500)
     shuffled = np.concatenate([points, points[copies]])[rng.permutation(2500)]
     shuffled[[10, 20]] = [[0.0, -0.0, 1.0], [-0.0, 0.0, 1.0]]  # equal as numbers: one point
+    # distinct points with one sort key (x + y sqrt 3 + z sqrt 5): two points, each sent twice
+    shuffled[[30, 40, 50, 60]] = [[np.sqrt(3.0), 0.0, 0.0], [0.0, 1.0, 0.0], [np.sqrt(3.0), 0.0, 0.0], [0.0, 1.0, 0.0]]
     kept = remove_duplicates(shuffled)
 
     _, first = np.unique(shuffled, axis=0, return_index=True)  # the reference: numpy's row-wise unique
@@ -85,3 +87,4 @@ def test_remove_duplicates_keeps_first_occurrences_in_order():
     assert len(kept) == len(np.unique(kept, axis=0))
     (zero_row,) = kept[(kept == [0.0, 0.0, 1.0]).all(axis=1)]
     assert list(np.signbit(zero_row)) == [False, True, False]  # the first of the two, as it was sent
+    assert len(remove_duplicates(points)) == 2000 and remove_duplicates(points[:1]).shape == (1, 3)
