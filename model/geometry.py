@@ -120,7 +120,8 @@ DEDUPE_KEY = (np.sqrt(3.0), np.sqrt(5.0))  # irrational weights: distinct rows r
 
 
 def remove_duplicates(points: np.ndarray) -> np.ndarray:
-    """Drop exact duplicate points, keeping first occurrences in their original order.
+    """Drop exact duplicate points, keeping first occurrences in their original order (`points`
+    itself when it has none).
 
     Duplicates make kNN ties, whose order differs between torch and ONNX Runtime. Rows are equal
     as numbers (-0.0 is 0.0). Equal rows share one key (elementwise arithmetic rounds alike for
