@@ -445,7 +445,9 @@ async def register_clouds(
         settled[0].timings_ms["postprocess_ms"] += features.seconds * 1000.0
     else:
         answers.append(await run_blocking(_finish_features, base, features, first.model, options))
-    if not any(answer.verified for answer in answers):
+    # Under `global` the starts also judge feature matching's answer: alone, nothing could contradict
+    # it, and on a symmetric shape it may fit a flipped pose as well as the right one.
+    if options.method == "global" or not any(answer.verified for answer in answers):
         turned, target = await run_blocking(_starts, base)
         predictions = await asyncio.gather(*(first.predict(cloud, target) for cloud in turned))
         answers += await run_blocking(_finish_multistart, base, list(predictions), first.model, options)

@@ -547,3 +547,23 @@ def test_a_second_point_count_reuses_the_pairs_checked_points(monkeypatch):
     np.testing.assert_array_equal(second.source_network, fresh.source_network)
     np.testing.assert_array_equal(second.target_network, fresh.target_network)
     assert second.points == fresh.points
+
+
+def test_global_does_not_verify_a_pose_that_a_symmetric_shape_fits_twice(monkeypatch):
+    """Under `global` the rotated starts judge feature matching's answer: on a box, the pose turned
+    half a turn about one of its axes fits as well as the right one, so neither is verified."""
+    from service import registration
+
+    rng = np.random.default_rng(0)
+    half = np.array([0.5, 0.3, 0.15])
+    points = rng.uniform(-1.0, 1.0, (96, 3)) * half
+    face = rng.integers(0, 3, 96)
+    points[np.arange(96), face] = np.sign(points[np.arange(96), face]) * half[face]  # on the surface
+    halfturns = [np.diag(signs) for signs in ([1, 1, 1], [1, -1, -1], [-1, 1, -1], [-1, -1, 1])]
+    source = np.concatenate([points @ turn.T for turn in halfturns])  # the box's own symmetries
+    target = apply_transform(source, TRUE_ROTATION, TRUE_TRANSLATION)
+    flipped = TRUE_ROTATION @ halfturns[1]
+    monkeypatch.setattr(registration, "feature_match", lambda *args: (flipped, TRUE_TRANSLATION))
+    answer = register(source, target, 384, method="global", refine={})
+    assert answer.stage in ("features", "multistart") and not answer.verified
+    assert answer.reason.startswith("ambiguous")
