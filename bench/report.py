@@ -93,6 +93,10 @@ def settings(record: dict) -> list[str]:
     return compare(record, "Service settings: the same requests on servers with other IFNET_* settings")
 
 
+def symmetric(record: dict) -> list[str]:
+    return compare(record, "Any rotation, 100 pairs per set: symmetric shapes")
+
+
 def scaling(record: dict) -> list[str]:
     lines = ["## Service: 16 clients against 1, alternating windows", "", *provenance(record)]
     rows = [
@@ -135,7 +139,14 @@ def overload(record: dict) -> list[str]:
     return lines + table(["measure", "value"], rows)
 
 
-RENDER = {"compare": compare, "scenes": scenes, "settings": settings, "scaling": scaling, "overload": overload}
+RENDER = {
+    "compare": compare,
+    "symmetric": symmetric,
+    "scenes": scenes,
+    "settings": settings,
+    "scaling": scaling,
+    "overload": overload,
+}
 
 
 def main() -> int:
