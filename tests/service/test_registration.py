@@ -342,24 +342,16 @@ def test_an_unpinned_draft_answer_stands_unverified_where_feature_matching_agree
     guess = euler_to_matrix([guess_turn_deg, 0.0, 0.0]) @ truth
     monkeypatch.setattr(registration, "feature_match", lambda *args: (guess, np.zeros(3)))
     asked = []
-
-    def asking(name):
-        async def predict(source_n, target_n):
-            asked.append(name)
-            return Prediction(*kabsch(source_n.astype(np.float64), target_n.astype(np.float64)))
-
-        return predict
-
     options, settings, _ = pipeline_inputs(None, None, method="auto")
-    draft = Network("object", 384, asking("draft"), "draft")
-    networks = [Network("object", 768, asking("model"), draft=draft)]
+    draft = Network("object", 384, recording(asked, "draft"), "draft")
+    networks = [Network("object", 768, recording(asked, "model"), draft=draft)]
     target = apply_transform(points, truth, np.zeros(3))
     result = asyncio.run(register_clouds(points, target, options, settings, networks))
     if stands:
-        assert (result.stage, result.verified, asked) == ("draft", False, ["draft"])
+        assert (result.stage, result.verified, asked) == ("draft", False, [("draft", 384)])
         assert "pin" in result.reason and rotation_angle_deg(result.rotation, truth) < 0.5
     else:
-        assert "model" in asked
+        assert ("model", 768) in asked
 
 
 def test_feature_matching_that_agrees_with_a_verified_answer_is_not_refined_again(real_scans, monkeypatch):
