@@ -439,7 +439,11 @@ class AlignmentClouds:
         self.spacing = max(point_spacing(self.source), point_spacing(self.target)) if spacing is None else spacing
         self.target_tree = cKDTree(self.target)
         self.target_normals = surface_normals(self.target, self.target_tree)  # once, for every score
-        source_cloud, target_cloud = small_gicp.PointCloud(self.source), small_gicp.PointCloud(self.target)
+        # small_gicp's clouds are centred: far from the origin (map coordinates) its turns, linearised
+        # about the origin, lose precision and answers failed the check.
+        self.centre = self.target.min(axis=0) / 2 + self.target.max(axis=0) / 2
+        source_cloud = small_gicp.PointCloud(self.source - self.centre)
+        target_cloud = small_gicp.PointCloud(self.target - self.centre)
         target_gicp_tree = small_gicp.KdTree(target_cloud)
         small_gicp.estimate_normals_covariances(target_cloud, target_gicp_tree, num_neighbors=20)
         small_gicp.estimate_normals_covariances(source_cloud, small_gicp.KdTree(source_cloud), num_neighbors=20)
@@ -505,7 +509,7 @@ class AlignmentClouds:
             max_distance = REFINE_SPACINGS * self.spacing
         clouds = self.gicp
         step = max_iterations if max_seconds is None else ITERATIONS_PER_CALL
-        transform = to_matrix(rotation, translation)
+        transform = to_matrix(rotation, translation + rotation @ self.centre - self.centre)  # of the centred clouds
         steps = 0  # small_gicp numbers its steps from 0 and reports the last one's number
         started = time.perf_counter()
         while steps < max_iterations:
@@ -525,13 +529,15 @@ class AlignmentClouds:
             if result.converged or (max_seconds is not None and time.perf_counter() - started > max_seconds):
                 break
         refined_rotation, refined_translation = from_matrix(transform)
-        return nearest_rotation(refined_rotation), refined_translation, steps - 1
+        refined_rotation = nearest_rotation(refined_rotation)
+        return refined_rotation, refined_translation - refined_rotation @ self.centre + self.centre, steps - 1
 
 
 # ---------------------------------------------------------------- feature-based global registration
 
 FEATURE_VOXEL_SPACINGS = 1.5  # KISS-Matcher's voxel size, in point spacings
 FEATURE_VOXEL = 0.05  # the clouds are scaled so that the voxel is this: KISS-Matcher refuses tiny voxels
+FEATURE_MAX_VOXELS = 2**19  # half of KISS-Matcher's voxel key range (21 bits per axis) from the origin
 
 
 def feature_match(source: np.ndarray, target: np.ndarray, spacing: float) -> tuple[np.ndarray, np.ndarray]:
@@ -540,14 +546,22 @@ def feature_match(source: np.ndarray, target: np.ndarray, spacing: float) -> tup
     import kiss_matcher  # imported here so that the rest of this module needs only numpy/scipy
 
     scale = FEATURE_VOXEL / (FEATURE_VOXEL_SPACINGS * spacing) if spacing > 0 else 1.0
+    # Clouds beyond the matcher's voxel keys (map coordinates) are both moved by one offset: out
+    # there it drops points and could crash the process. Only those: its answers change with the
+    # clouds' placement, and moving real scans lost some of them.
+    offset = np.zeros(3)
+    if max(np.abs(source).max(), np.abs(target).max()) * scale > FEATURE_MAX_VOXELS * FEATURE_VOXEL:
+        offset = target.mean(axis=0)
     matcher = kiss_matcher.KISSMatcher(kiss_matcher.KISSMatcherConfig(FEATURE_VOXEL))
     try:
         found = matcher.estimate(
-            np.ascontiguousarray(source * scale, np.float64), np.ascontiguousarray(target * scale, np.float64)
+            np.ascontiguousarray((source - offset) * scale, np.float64),
+            np.ascontiguousarray((target - offset) * scale, np.float64),
         )
     except RuntimeError:  # the matcher's own refusals (too few points or features)
         return np.eye(3), np.zeros(3)
     rotation, translation = np.asarray(found.rotation, np.float64), np.asarray(found.translation, np.float64)
     if not (np.isfinite(rotation).all() and np.isfinite(translation).all()):
         return np.eye(3), np.zeros(3)
-    return nearest_rotation(rotation), translation.reshape(3) / scale
+    rotation = nearest_rotation(rotation)
+    return rotation, translation.reshape(3) / scale + offset - rotation @ offset

@@ -155,6 +155,21 @@ def test_refine_recovers_a_few_degrees_at_the_spacing_distance(method):
     assert iterations >= 1
 
 
+def test_refinement_and_the_check_work_as_well_far_from_the_origin():
+    """The same pair moved three million units out (as LiDAR scans in map coordinates are) refines to
+    the same motion and passes the check, as near the origin."""
+    source, target, rotation, translation = pair(jitter=0.005)
+    start = turned(rotation, translation, 3.0, apply_transform(source, rotation, translation).mean(axis=0))
+    offset = np.array([3e6, -2e6, 1e6])
+    near = refine(source, target, *start)
+    # The same motion of the moved clouds: x + offset -> R x + t + offset.
+    far = refine(source + offset, target + offset, start[0], start[1] + offset - start[0] @ offset)
+    assert rotation_angle_deg(far[0], near[0]) < 0.01 and rotation_angle_deg(far[0], rotation) < 0.5
+    moved_near = apply_transform(source, *near[:2]) + offset
+    assert np.abs(apply_transform(source + offset, *far[:2]) - moved_near).max() < 1e-4
+    assert verify_alignment(source + offset, target + offset, far[0], far[1]).verified
+
+
 def test_feature_matching_finds_any_rotation_at_any_scale():
     """KISS-Matcher refuses voxels below a few millimetres; the clouds are rescaled for it, so a
     small object in metres registers as well as a large one."""
@@ -170,3 +185,20 @@ def test_feature_matching_finds_any_rotation_at_any_scale():
         found_rotation, found_translation = feature_match(source, target, point_spacing(source))
         assert rotation_angle_deg(found_rotation, rotation) < 2.0, size
         assert np.linalg.norm(found_translation - translation * size) < 0.05 * size
+
+
+def test_feature_matching_finds_the_motion_of_clouds_far_from_the_origin():
+    """Clouds in map coordinates (here a million units out, a few units across) are centred for the
+    matcher, whose voxel keys overflow that far out (it warned, answered wrong, and could crash)."""
+    pytest.importorskip("kiss_matcher")
+    from model.geometry import euler_to_matrix, feature_match, point_spacing, rotation_angle_deg
+
+    rng = np.random.default_rng(2)
+    rotation, offset = euler_to_matrix([120.0, -35.0, 80.0]), np.array([3e6, -2e6, 1e6])
+    blob = rng.normal(size=(4000, 3)) * [3.0, 2.0, 1.0] + np.sin(rng.normal(size=(4000, 1)) * [1.0, 2.0, 3.0])
+    source = blob + offset
+    translation = offset - rotation @ offset + np.array([0.3, -0.1, 0.2])  # turned about the offset, and moved
+    target = source @ rotation.T + translation
+    found_rotation, found_translation = feature_match(source, target, point_spacing(source))
+    assert rotation_angle_deg(found_rotation, rotation) < 2.0
+    assert np.linalg.norm(apply_transform(source, found_rotation, found_translation) - target, axis=1).max() < 0.5

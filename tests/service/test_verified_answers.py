@@ -62,6 +62,20 @@ async def test_a_right_answer_is_verified(serve, shipped_model):
     assert answer["fitness"] > 0.5 and answer["fitness_threshold"] > 0
 
 
+async def test_clouds_in_map_coordinates_are_registered(serve, shipped_model):
+    """The sample pair moved three million units out (as LiDAR scans in map coordinates are): feature
+    matching's voxel keys overflowed there and crashed the process, and refinement lost precision."""
+    source, target, truth = sample_pair(turned=False)
+    offset = np.array([3e6, -2e6, 1e6])
+    async with serve(Settings(model_path=shipped_model, warmup=False)) as (_, client):
+        answer = await register(client, source + offset, target + offset, method="auto", refine=True)
+    assert answer["verified"] is True and rotation_error(answer, truth) < 0.5
+    # Each source point lands where the true motion puts it (about the far origin, a tiny turn
+    # error moves the translation a lot, but not the points).
+    landed = apply_transform(source + offset, *from_matrix(np.asarray(answer["transform"])))
+    assert np.linalg.norm(landed - apply_transform(source, *from_matrix(truth)) - offset, axis=1).max() < 0.02
+
+
 @pytest.mark.slow
 async def test_auto_finds_a_large_rotation_the_network_alone_gets_wrong(serve, shipped_model):
     source, target, truth = sample_pair(turned=True)
