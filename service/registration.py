@@ -14,7 +14,8 @@ two answers both pass and disagree, the pair is ambiguous and no model is asked;
 check only because the clouds cannot pin the motion down and feature matching agrees, it stands
 unverified). Where the method allows and the answer fails the check, the other networks follow in
 turn, then the global path: feature matching (also a second opinion on a verified answer), then
-the first network from rotated starts.
+the first network's draft (or the network) from 24 rotated starts, which also judge a verified
+answer: a start that lands far from it and fits as well (a symmetric shape) contradicts it.
 `register_pairs` runs a request's pairs through it and the models' batchers.
 """
 
@@ -67,6 +68,13 @@ FEATURE_SPACING_POINTS = 20_000
 # of one of them; the network's answers from the best few (by fitness) are refined and checked.
 STARTS = Rotation.create_group("O").as_matrix()
 STARTS_REFINED = 3
+# Starts judging verified answers refine only rivals: starts further than RIVAL_REACH_DEG from each
+# (nearer ones settle on it) that fit at least RIVAL_LOOSE_SHARE as well as it at LOOSE_SPACINGS
+# point spacings, forgiving a coarse answer's few degrees (on real scans no start comes near).
+RIVAL_REACH_DEG = 15.0
+LOOSE_SPACINGS = 4.5
+RIVAL_LOOSE_SHARE = 0.8
+STARTS_SCORE_POINTS = 2_000  # source points that rank the starts' coarse answers
 # Points per cloud of the starts' network calls: a coarse answer each, which refinement settles;
 # each call costs about 0.4x one at the network's 768 points.
 STARTS_POINTS = 384
@@ -350,25 +358,43 @@ def _starts(prepared: _Prepared) -> tuple[list[np.ndarray], np.ndarray]:
 
 
 def _finish_multistart(
-    prepared: _Prepared, predictions: list[Prediction], model: str, options: RegistrationOptions
-) -> list[RegistrationResult]:
-    """The network's answers from the rotated starts: the best few by fitness, each refined and
-    checked (every one of them can contradict another)."""
+    prepared: _Prepared,
+    predictions: list[Prediction],
+    model: str,
+    options: RegistrationOptions,
+    settled: Sequence[RegistrationResult] = (),
+) -> tuple[list[RegistrationResult], dict[str, float]]:
+    """The network's answers from the rotated starts, the best few by fitness each refined and
+    checked (every one of them can contradict another), and what they cost. With verified answers
+    to judge (`settled`), only their rivals are refined: none, where no start fits loosely as well."""
     started = time.perf_counter()
+    check = prepared.check
+    source = subset(check.source, STARTS_SCORE_POINTS)
+
+    def fit(rotation: np.ndarray, translation: np.ndarray, spacings: float) -> float:
+        moved = apply_transform(source, rotation, translation)
+        distances, _ = check.target_tree.query(moved, k=1, distance_upper_bound=spacings * check.spacing)
+        return float(np.isfinite(distances).mean())
+
     ranked = []
     for start, prediction in zip(STARTS, predictions, strict=True):
         rotation, translation = _user_transform(prepared, prediction, start)
-        moved = apply_transform(prepared.check.source, rotation, translation)
-        fitness, _ = fitness_and_rmse(moved, prepared.check.target, INLIER_SPACINGS * prepared.check.spacing)
-        ranked.append((fitness, rotation, translation))
+        ranked.append((fit(rotation, translation, INLIER_SPACINGS), rotation, translation))
+    if settled:
+        bar = RIVAL_LOOSE_SHARE * max(fit(answer.rotation, answer.translation, LOOSE_SPACINGS) for answer in settled)
+        ranked = [
+            (fitness, rotation, translation)
+            for fitness, rotation, translation in ranked
+            if min(rotation_angle_deg(rotation, answer.rotation) for answer in settled) > RIVAL_REACH_DEG
+            and fit(rotation, translation, LOOSE_SPACINGS) >= bar
+        ]
     ranked.sort(key=lambda entry: -entry[0])
     refine_options = options.refine or RefineOptions()  # the starts are coarse: every candidate is refined
     best = ranked[:STARTS_REFINED]
     candidates = [_checked(prepared, rotation, translation, refine_options) for _, rotation, translation in best]
-    timings = _model_timings(predictions) | {"postprocess_ms": (time.perf_counter() - started) * 1000.0}
-    first, *others = [_result(prepared, candidate, "multistart", model, options, timings) for candidate in candidates]
-    free = first.timings_ms | {"queue_ms": 0.0, "inference_ms": 0.0, "batch_size": 0, "postprocess_ms": 0.0}
-    return [first, *(dataclasses.replace(other, timings_ms=dict(free)) for other in others)]  # paid once
+    cost = _model_timings(predictions) | {"postprocess_ms": (time.perf_counter() - started) * 1000.0}
+    free = {"queue_ms": 0.0, "inference_ms": 0.0, "batch_size": 0, "postprocess_ms": 0.0}  # paid in `cost`
+    return [_result(prepared, candidate, "multistart", model, options, free) for candidate in candidates], cost
 
 
 def _rank(answer: RegistrationResult) -> tuple[bool, float]:
@@ -409,7 +435,7 @@ async def register_clouds(
     # The global path runs on the first clouds prepared: the check's clouds are the same for every count.
     base = prepared[count]
     answers: list[RegistrationResult] = []
-    discarded: list[dict[str, float]] = []  # the timings of an unconfirmed draft's answer: no candidate, but paid for
+    discarded: list[dict[str, float]] = []  # the timings of stages that gave no candidate, but were paid for
     features: _FeatureGuess | None = None
     features_answer: RegistrationResult | None = None
 
@@ -445,12 +471,17 @@ async def register_clouds(
         settled[0].timings_ms["postprocess_ms"] += features.seconds * 1000.0
     else:
         answers.append(await run_blocking(_finish_features, base, features, first.model, options))
-    # Under `global` the starts also judge feature matching's answer: alone, nothing could contradict
-    # it, and on a symmetric shape it may fit a flipped pose as well as the right one.
-    if options.method == "global" or not any(answer.verified for answer in answers):
+    # The rotated starts search for an answer where none is verified and, past `ifnet`, judge the
+    # verified ones: on a symmetric shape a network or feature matching may fit a flipped pose as
+    # well as the right one. The first network's draft makes their coarse answers where it has one.
+    if options.method != "ifnet":
+        starter = first.draft or first
         turned, target = await run_blocking(_starts, base)
-        predictions = await asyncio.gather(*(first.predict(cloud, target) for cloud in turned))
-        answers += await run_blocking(_finish_multistart, base, list(predictions), first.model, options)
+        predictions = await asyncio.gather(*(starter.predict(cloud, target) for cloud in turned))
+        verified = [answer for answer in answers if answer.verified]
+        found, cost = await run_blocking(_finish_multistart, base, list(predictions), first.model, options, verified)
+        answers += found
+        discarded.append(cost)
     # `ifnet` answers with the network, whatever else fits; the other stages only judge it.
     best = answers[0] if options.method == "ifnet" else max(answers, key=_rank)
     # The request paid for every stage that ran.
@@ -552,7 +583,8 @@ def _charged(answer: RegistrationResult, others: list[dict[str, float]]) -> Regi
     for timings in others:
         for name in ("inference_ms", "postprocess_ms"):
             answer.timings_ms[name] += timings[name]
-        answer.timings_ms["batch_size"] = max(answer.timings_ms["batch_size"], timings["batch_size"])
+        for name in ("queue_ms", "batch_size"):  # the longest wait, the largest batch
+            answer.timings_ms[name] = max(answer.timings_ms[name], timings[name])
     return answer
 
 

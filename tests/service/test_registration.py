@@ -172,8 +172,8 @@ def test_auto_asks_the_draft_first_and_keeps_its_answer_only_where_feature_match
     """A model with a draft: `auto` asks the draft (at its points, refining its answer even unasked)
     and stops there when feature matching's guess agrees; when it does not (a draft answer far from
     the guess is not even refined), the model is asked as if there were no draft; the other models'
-    drafts are not asked. `global`'s 24 starts and `ifnet`
-    ask the model."""
+    drafts are not asked. The 24 rotated starts, which judge a verified answer past the draft, ask
+    the first model's draft, under `global` too; `ifnet` asks the model alone."""
     from service import registration
 
     asked = []
@@ -201,17 +201,18 @@ def test_auto_asks_the_draft_first_and_keeps_its_answer_only_where_feature_match
     monkeypatch.setattr(registration, "_checked", lambda *args: checked.append(args[1]) or check(*args))
     unconfirmed = run("auto", target)
     # The guess (no turn) would ask the draft the same question again: it is not asked twice.
-    assert asked == [("draft", 384), ("model", 768)]
+    starts = [("draft", registration.STARTS_POINTS)] * 24
+    assert asked == [("draft", 384), ("model", 768), *starts]
     assert (unconfirmed.stage, unconfirmed.verified) == ("ifnet", True)
     # The draft's answer, more than DRAFT_REACH_DEG from the guess, was set aside unrefined: the
-    # model's answer and the guess were refined and checked, nothing else.
+    # model's answer and the guess were refined and checked; the starts all landed on the answer.
     assert len(checked) == 2 and rotation_angle_deg(checked[1], np.eye(3)) == pytest.approx(0.0, abs=1e-9)
-    assert unconfirmed.timings_ms["inference_ms"] == 2.0  # the discarded draft's call was paid for too
+    assert unconfirmed.timings_ms["inference_ms"] == 26.0  # the discarded draft's call and the starts' were paid for
     other = run("auto", target, first_turned=True)  # only the first model's draft is asked
-    assert asked == [("draft", 384), ("model", 768), ("indoor", 768)]
+    assert asked == [("draft", 384), ("model", 768), ("indoor", 768), *starts]
     assert (other.model, other.verified) == ("indoor", True)
     searched = run("global", apply_transform(source, euler_to_matrix([150.0, 40.0, -70.0]), TRUE_TRANSLATION))
-    assert asked == [("model", registration.STARTS_POINTS)] * 24 and searched.stage == "multistart"
+    assert asked == starts and searched.stage == "multistart"
     network = run("ifnet", target)
     assert asked == [("model", 768)] and (network.stage, network.refinement) == ("ifnet", None)
 
@@ -245,8 +246,9 @@ def test_a_verified_draft_answer_the_guess_is_too_coarse_to_confirm_is_confirmed
         register_clouds(source, apply_transform(source, TRUE_ROTATION, TRUE_TRANSLATION), options, settings, networks)
     )
     # The refined guess lands elsewhere: the model is asked, and the guess is not refined a second time
-    # (the draft's answer, the guess and the model's answer are checked).
-    assert asked == [("draft", 384), ("model", 768)] and (other.stage, other.verified) == ("ifnet", True)
+    # (the draft's answer, the guess and the model's answer are checked; the starts land on the answer).
+    starts = [("draft", registration.STARTS_POINTS)] * 24
+    assert asked == [("draft", 384), ("model", 768), *starts] and (other.stage, other.verified) == ("ifnet", True)
     assert len(checked) == 3
 
 
@@ -283,6 +285,26 @@ def test_auto_asks_the_draft_again_from_feature_matchings_guess_for_a_turn_beyon
     assert (result.stage, result.verified) == ("draft", True)
     assert rotation_angle_deg(result.rotation, truth) < 0.01
     assert result.timings_ms["inference_ms"] == 2.0
+
+
+def test_the_rotated_starts_judge_a_verified_answer_refining_only_rivals_that_fit(real_scans, monkeypatch):
+    """A verified model answer on a real scan: the 24 rotated starts judge it (asked of the model,
+    which has no draft). Those within the network's reach land on the answer; the others, far from
+    it, fit too poorly to be rivals: none is refined, only the answer was."""
+    from service import registration
+
+    truth = euler_to_matrix([20.0, 10.0, 5.0])  # within the network's reach
+    monkeypatch.setattr(registration, "feature_match", lambda *args: (truth, TRUE_TRANSLATION))
+    checked, check = [], registration._checked
+    monkeypatch.setattr(registration, "_checked", lambda *args: checked.append(args[1]) or check(*args))
+    turns = []
+    options, settings, _ = pipeline_inputs(None, None, method="auto")
+    source = real_scans["kitti_000008_fov"]
+    target = apply_transform(source, truth, TRUE_TRANSLATION)
+    networks = [Network("object", 768, limited_reach(turns))]
+    result = asyncio.run(register_clouds(source, target, options, settings, networks))
+    assert (result.stage, result.verified) == ("ifnet", True) and len(turns) == 1 + 24
+    assert len(checked) == 1 and result.timings_ms["inference_ms"] == 25.0
 
 
 def test_a_draft_answer_from_the_guess_does_not_stand_where_its_own_answer_contradicts_it(monkeypatch):
@@ -363,12 +385,12 @@ def test_feature_matching_that_agrees_with_a_verified_answer_is_not_refined_agai
     monkeypatch.setattr(registration, "_checked", lambda *args: checked.append(args[1]) or check(*args))
     source = real_scans["kitti_000008_fov"]
     target = apply_transform(source, TRUE_ROTATION, TRUE_TRANSLATION)
-    agreeing = register(source, target, 768, method="auto")
+    agreeing = register(source, target, 768, recording([], "model"), method="auto")  # the starts' clouds: subsets
     assert agreeing.verified and agreeing.stage == "ifnet" and len(checked) == 1
     checked.clear()
     turned = euler_to_matrix([90.0, 0.0, 0.0]) @ TRUE_ROTATION
     monkeypatch.setattr(registration, "feature_match", lambda *args: (turned, TRUE_TRANSLATION))
-    disagreeing = register(source, target, 768, method="auto")
+    disagreeing = register(source, target, 768, recording([], "model"), method="auto")
     assert disagreeing.verified and disagreeing.stage == "ifnet" and len(checked) == 2
     assert rotation_angle_deg(checked[1], turned) == pytest.approx(0.0, abs=1e-9)  # the guess, refined and checked
 
@@ -391,7 +413,7 @@ def test_a_pairs_clouds_are_made_ready_for_refinement_once(real_scans, monkeypat
     source = real_scans["kitti_000008_fov"]
     noise = np.random.default_rng(0).normal(scale=1e-4 * radius(source), size=source.shape)  # work for refinement
     target = apply_transform(source, TRUE_ROTATION, TRUE_TRANSLATION) + noise
-    result = register(source, target, 768, method=method, refine=RefineOptions())
+    result = register(source, target, 768, recording([], "model"), method=method, refine=RefineOptions())
     assert result.verified and result.refinement.iterations >= 1
     checked = min(len(source), registration.CHECK_MAX_POINTS)  # 17k points: a subset
     assert estimates == [checked, checked]  # the target's, then the source's

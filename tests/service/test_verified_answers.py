@@ -161,8 +161,8 @@ def test_every_rotated_start_the_global_path_keeps_can_be_the_answer():
     options, settings, _ = pipeline_inputs(256, None, refine={}, method="global")
     prepared = _prepare(source, source @ euler_to_matrix([30.0, 0.0, 0.0]).T, 256, options, settings)
     predictions = [Prediction(np.eye(3), np.zeros(3), inference_ms=5.0) for _ in range(24)]
-    results = _finish_multistart(prepared, predictions, "object", options)
-    assert len(results) > 1
+    results, cost = _finish_multistart(prepared, predictions, "object", options)
+    assert len(results) > 1 and cost["inference_ms"] == 120.0
     model = ModelDescription.model_construct()
     for result in results:
         assert result.timings_ms.keys() == results[0].timings_ms.keys()
@@ -184,7 +184,7 @@ def test_an_unverified_answer_that_fits_as_well_also_contradicts():
     source = box_surface(1500, rng)
     options, settings, _ = pipeline_inputs(256, None, refine={}, method="global")
     prepared = _prepare(source, source, 256, options, settings)
-    result = _finish_multistart(prepared, [Prediction(np.eye(3), np.zeros(3))] * 24, "object", options)[0]
+    result = _finish_multistart(prepared, [Prediction(np.eye(3), np.zeros(3))] * 24, "object", options)[0][0]
     answer = dataclasses.replace(result, rotation=np.eye(3), verified=True, reason=None, fitness=0.72)
     turned = euler_to_matrix([30.0, 0.0, 0.0])
     sliding = dataclasses.replace(result, rotation=turned, verified=False, reason="slides", fitness=0.70)
@@ -193,3 +193,32 @@ def test_an_unverified_answer_that_fits_as_well_also_contradicts():
     flagged = _unless_contradicted(answer, [answer, sliding])
     assert flagged.verified is False and flagged.reason.startswith("ambiguous")
     assert _unless_contradicted(answer, [answer, poorer]).verified is True
+
+
+def test_the_rotated_starts_judge_a_verified_answer(monkeypatch):
+    """The model and feature matching agree on the box turned 180 deg, which passes the check. The
+    rotated starts, judging it, find the true motion, which passes too: the clouds do not tell the
+    two apart, so the answer (the better fitting) is flagged."""
+    import asyncio
+
+    from conftest import pipeline_inputs
+
+    from service import registration
+    from service.batcher import Prediction
+
+    rng = np.random.default_rng(5)
+    rotation = euler_to_matrix([20.0, 10.0, 5.0])
+    source = box_surface(3000, rng)
+    flip = rotation @ np.diag([-1.0, -1.0, 1.0]) @ rotation.T  # half a turn about the box's own short axis
+    monkeypatch.setattr(registration, "feature_match", lambda *args: (flip @ rotation, np.zeros(3)))
+
+    async def flipped_at_full_size(source_n, target_n):
+        if len(source_n) == registration.STARTS_POINTS:  # a start: the true motion (the points correspond)
+            u, _, vt = np.linalg.svd(source_n.astype(np.float64).T @ target_n.astype(np.float64))
+            return Prediction(vt.T @ np.diag([1.0, 1.0, np.linalg.det(vt.T @ u.T)]) @ u.T, np.zeros(3))
+        return Prediction(flip @ rotation, np.zeros(3))
+
+    options = pipeline_inputs(768, flipped_at_full_size, refine={}, method="auto")
+    answer = asyncio.run(registration.register_clouds(source, source @ rotation.T, *options))
+    assert answer.verified is False and answer.reason.startswith("ambiguous"), answer.reason
+    assert answer.stage == "multistart" and rotation_angle_deg(answer.rotation, rotation) < 0.01
