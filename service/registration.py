@@ -483,10 +483,11 @@ async def register_clouds(
         answers += found
         discarded.append(cost)
     # `ifnet` answers with the network, whatever else fits; the other stages only judge it.
-    best = answers[0] if options.method == "ifnet" else max(answers, key=_rank)
+    given = _given(answers, options.method)
     # The request paid for every stage that ran.
-    _charged(best, [answer.timings_ms for answer in answers if answer is not best] + discarded)
-    return _unless_contradicted(best, answers)
+    return _charged(
+        given, [answer.timings_ms for answer in answers if answer.timings_ms is not given.timings_ms] + discarded
+    )
 
 
 async def _confirmed_draft(
@@ -576,6 +577,18 @@ async def _confirmed_draft(
         candidates = [chosen, own, *refined]
         return stands(_unless_contradicted(max(candidates, key=_rank), candidates))
     return set_aside()
+
+
+def _given(answers: list[RegistrationResult], method: str) -> RegistrationResult:
+    """The answer a request gets: under `ifnet` the network's, else the best ranked, judged by the
+    others (_unless_contradicted). A contradicted answer leaves nothing verified, so (past `ifnet`)
+    the best fitting answer is given, flagged alike."""
+    best = answers[0] if method == "ifnet" else max(answers, key=_rank)
+    judged = _unless_contradicted(best, answers)
+    if best.verified and not judged.verified and method != "ifnet":
+        fittest = max(answers, key=lambda answer: answer.fitness)
+        judged = dataclasses.replace(fittest, verified=False, reason=judged.reason)
+    return judged
 
 
 def _charged(answer: RegistrationResult, others: list[dict[str, float]]) -> RegistrationResult:

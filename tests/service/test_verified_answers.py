@@ -195,6 +195,35 @@ def test_an_unverified_answer_that_fits_as_well_also_contradicts():
     assert _unless_contradicted(answer, [answer, poorer]).verified is True
 
 
+def test_a_contradicted_answer_gives_way_to_the_best_fitting_one():
+    """A start verified at fitness 0.725 and the network's unverified answer 30 degrees away at
+    0.934 (a shape the check cannot pin down): nothing stands verified, so `auto` gives the better
+    fitting answer, flagged; `ifnet` gives the network's answer whatever else fits."""
+    import dataclasses
+
+    from conftest import pipeline_inputs
+
+    from service.batcher import Prediction
+    from service.registration import _finish_multistart, _given, _prepare
+
+    rng = np.random.default_rng(7)
+    source = box_surface(1500, rng)
+    options, settings, _ = pipeline_inputs(256, None, refine={}, method="global")
+    prepared = _prepare(source, source, 256, options, settings)
+    result = _finish_multistart(prepared, [Prediction(np.eye(3), np.zeros(3))] * 24, "object", options)[0][0]
+    turned = euler_to_matrix([30.0, 0.0, 0.0])
+    network = dataclasses.replace(
+        result, rotation=turned, verified=False, reason="slides", fitness=0.934, stage="ifnet"
+    )
+    start = dataclasses.replace(result, rotation=np.eye(3), verified=True, reason=None, fitness=0.725)
+
+    given = _given([network, start], "auto")
+    assert (given.stage, given.fitness, given.verified) == ("ifnet", 0.934, False)
+    assert given.reason.startswith("ambiguous")
+    network_answer = _given([network, start], "ifnet")
+    assert (network_answer.stage, network_answer.verified, network_answer.reason) == ("ifnet", False, "slides")
+
+
 def test_the_rotated_starts_judge_a_verified_answer(monkeypatch):
     """The model and feature matching agree on the box turned 180 deg, which passes the check. The
     rotated starts, judging it, find the true motion, which passes too: the clouds do not tell the
