@@ -78,6 +78,8 @@ async def test_clouds_in_map_coordinates_are_registered(serve, shipped_model):
 
 @pytest.mark.slow
 async def test_auto_finds_a_large_rotation_the_network_alone_gets_wrong(serve, shipped_model):
+    """The sample pair turned 150 deg: the rotated starts find it. The table fits a pose 18 deg off
+    well enough for the check to pass it (fitness 0.49 against 0.81), so the answer is flagged."""
     source, target, truth = sample_pair(turned=True)
     async with serve(Settings(model_path=shipped_model, warmup=False)) as (_, client):
         network = await register(client, source, target, method="ifnet", refine=True)
@@ -85,9 +87,10 @@ async def test_auto_finds_a_large_rotation_the_network_alone_gets_wrong(serve, s
         metrics = (await client.get("/metrics")).text
     assert rotation_error(network, truth) > 10 and network["verified"] is False and network["reason"]
     assert rotation_error(auto, truth) < 1.0, auto
-    assert auto["verified"] is True and auto["stage"] in ("multistart", "features")
+    assert auto["verified"] is False and auto["reason"].startswith("ambiguous")
+    assert auto["stage"] in ("multistart", "features")  # feature matching may find it too, not deterministically
     assert 'ifnet_answers_total{model="object",stage="ifnet",verified="false"} 1.0' in metrics
-    assert f'ifnet_answers_total{{model="object",stage="{auto["stage"]}",verified="true"}} 1.0' in metrics
+    assert f'ifnet_answers_total{{model="object",stage="{auto["stage"]}",verified="false"}} 1.0' in metrics
 
 
 @pytest.mark.slow
