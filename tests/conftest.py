@@ -254,6 +254,14 @@ def service_process(tmp_path: Path, model: Path, env: dict[str, str] | None = No
             process.wait(timeout=60)
 
 
+def kabsch(source: np.ndarray, target: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The least-squares rigid motion between corresponding points (the "perfect network")."""
+    source_centre, target_centre = source.mean(axis=0), target.mean(axis=0)
+    u, _, vt = np.linalg.svd((source - source_centre).T @ (target - target_centre))
+    rotation = vt.T @ np.diag([1.0, 1.0, np.sign(np.linalg.det(vt.T @ u.T))]) @ u.T
+    return rotation, target_centre - rotation @ source_centre
+
+
 def pipeline_inputs(
     network_points: int,
     predict,

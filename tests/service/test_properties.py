@@ -13,7 +13,7 @@ import asyncio
 
 import numpy as np
 import pytest
-from conftest import pipeline_inputs
+from conftest import kabsch, pipeline_inputs
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
@@ -49,14 +49,6 @@ def network_radius() -> float:
 
 
 RADIUS = network_radius()
-
-
-def kabsch(source: np.ndarray, target: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The least-squares rigid motion between corresponding points (the "perfect network")."""
-    source_centre, target_centre = source.mean(axis=0), target.mean(axis=0)
-    u, _, vt = np.linalg.svd((source - source_centre).T @ (target - target_centre))
-    rotation = vt.T @ np.diag([1.0, 1.0, np.sign(np.linalg.det(vt.T @ u.T))]) @ u.T
-    return rotation, target_centre - rotation @ source_centre
 
 
 quaternions = hnp.arrays(np.float64, 4, elements=st.floats(-1, 1)).filter(lambda q: np.linalg.norm(q) > 0.1)

@@ -11,7 +11,7 @@ import functools
 
 import numpy as np
 import pytest
-from conftest import pipeline_inputs
+from conftest import kabsch, pipeline_inputs
 
 from model.geometry import (
     INLIER_SPACINGS,
@@ -37,14 +37,6 @@ TRANSLATION_TOLERANCE = 1e-7  # times the cloud's radius
 TRUE_ROTATION = euler_to_matrix([40.0, 25.0, -30.0])
 TRUE_TRANSLATION = np.array([2.0, -1.5, 0.3])  # metres
 INIT = to_matrix(euler_to_matrix([10.0, 0.0, 5.0]), np.array([0.5, 0.2, 0.0]))
-
-
-def kabsch(source: np.ndarray, target: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Least-squares rigid motion between corresponding points."""
-    source_centre, target_centre = source.mean(axis=0), target.mean(axis=0)
-    u, _, vt = np.linalg.svd((source - source_centre).T @ (target - target_centre))
-    rotation = vt.T @ np.diag([1.0, 1.0, np.sign(np.linalg.det(vt.T @ u.T))]) @ u.T
-    return rotation, target_centre - rotation @ source_centre
 
 
 async def oracle(source: np.ndarray, target: np.ndarray) -> Prediction:

@@ -172,22 +172,28 @@ def test_every_rotated_start_the_global_path_keeps_can_be_the_answer():
         RegisterResponse.from_result(result, model, read_ms=1.0, total_ms=2.0)
 
 
+def box_answer():
+    """A multistart answer on a box, to vary: the fields of a result any stage could give."""
+    from conftest import pipeline_inputs
+
+    from service.batcher import Prediction
+    from service.registration import _finish_multistart, _prepare
+
+    source = box_surface(1500, np.random.default_rng(7))
+    options, settings, _ = pipeline_inputs(256, None, refine={}, method="global")
+    prepared = _prepare(source, source, 256, options, settings)
+    return _finish_multistart(prepared, [Prediction(np.eye(3), np.zeros(3))] * 24, "object", options)[0][0]
+
+
 def test_an_unverified_answer_that_fits_as_well_also_contradicts():
     """A near-symmetric shape: one answer slides (unverified), another 30 degrees away passes the
     check; the two fit about as well, so the second is not verified either. A poorer fit does not
     contradict."""
     import dataclasses
 
-    from conftest import pipeline_inputs
+    from service.registration import _unless_contradicted
 
-    from service.batcher import Prediction
-    from service.registration import _finish_multistart, _prepare, _unless_contradicted
-
-    rng = np.random.default_rng(7)
-    source = box_surface(1500, rng)
-    options, settings, _ = pipeline_inputs(256, None, refine={}, method="global")
-    prepared = _prepare(source, source, 256, options, settings)
-    result = _finish_multistart(prepared, [Prediction(np.eye(3), np.zeros(3))] * 24, "object", options)[0][0]
+    result = box_answer()
     answer = dataclasses.replace(result, rotation=np.eye(3), verified=True, reason=None, fitness=0.72)
     turned = euler_to_matrix([30.0, 0.0, 0.0])
     sliding = dataclasses.replace(result, rotation=turned, verified=False, reason="slides", fitness=0.70)
@@ -204,16 +210,9 @@ def test_a_contradicted_answer_gives_way_to_the_best_fitting_one():
     fitting answer, flagged; `ifnet` gives the network's answer whatever else fits."""
     import dataclasses
 
-    from conftest import pipeline_inputs
+    from service.registration import _given
 
-    from service.batcher import Prediction
-    from service.registration import _finish_multistart, _given, _prepare
-
-    rng = np.random.default_rng(7)
-    source = box_surface(1500, rng)
-    options, settings, _ = pipeline_inputs(256, None, refine={}, method="global")
-    prepared = _prepare(source, source, 256, options, settings)
-    result = _finish_multistart(prepared, [Prediction(np.eye(3), np.zeros(3))] * 24, "object", options)[0][0]
+    result = box_answer()
     turned = euler_to_matrix([30.0, 0.0, 0.0])
     network = dataclasses.replace(
         result, rotation=turned, verified=False, reason="slides", fitness=0.934, stage="ifnet"
@@ -233,7 +232,7 @@ def test_the_rotated_starts_judge_a_verified_answer(monkeypatch):
     two apart, so the answer (the better fitting) is flagged."""
     import asyncio
 
-    from conftest import pipeline_inputs
+    from conftest import kabsch, pipeline_inputs
 
     from service import registration
     from service.batcher import Prediction
@@ -246,8 +245,7 @@ def test_the_rotated_starts_judge_a_verified_answer(monkeypatch):
 
     async def flipped_at_full_size(source_n, target_n):
         if len(source_n) == registration.STARTS_POINTS:  # a start: the true motion (the points correspond)
-            u, _, vt = np.linalg.svd(source_n.astype(np.float64).T @ target_n.astype(np.float64))
-            return Prediction(vt.T @ np.diag([1.0, 1.0, np.linalg.det(vt.T @ u.T)]) @ u.T, np.zeros(3))
+            return Prediction(*kabsch(source_n.astype(np.float64), target_n.astype(np.float64)))
         return Prediction(flip @ rotation, np.zeros(3))
 
     options = pipeline_inputs(768, flipped_at_full_size, refine={}, method="auto")
