@@ -469,6 +469,13 @@ class AlignmentClouds:
             constraint=inlier_constraint(matched, normals) if len(matched) else 0.0,
         )
 
+    def fitness(self, rotation: np.ndarray, translation: np.ndarray, spacings: float, count: int) -> float:
+        """The share of (a seeded subset of `count` of) the source points with a target point within
+        `spacings` point spacings: score's fitness, cheap enough to rank many coarse answers."""
+        moved = apply_transform(subset(self.source, count), rotation, translation)
+        distances, _ = self.target_tree.query(moved, k=1, distance_upper_bound=spacings * self.spacing)
+        return float(np.isfinite(distances).mean())
+
     def verify(self, rotation: np.ndarray, translation: np.ndarray) -> Verification:
         """Is (R, t) right? Scores it at the clouds' point spacing, refines it once to see whether it
         has settled, and judges both (judge). Call it on the final answer, refined or not. A score

@@ -317,7 +317,8 @@ class RegisterResponse(BaseModel):
     reason: str | None = Field(None, description="Why the answer is not verified.")
     stage: Literal["ifnet", "draft", "multistart", "features"] = Field(
         description="What produced the answer: the network, the model's draft network (refined), the network from a "
-        "rotated start, or feature matching."
+        "rotated start (or another answer turned half a turn about the target's principal axes, refined), or feature "
+        "matching."
     )
     points: CloudPointCounts
     refinement: Refinement | None

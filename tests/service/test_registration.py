@@ -300,18 +300,19 @@ def test_the_rotated_starts_judge_a_verified_answer_refining_only_rivals_that_fi
 
 
 def test_a_draft_answer_from_the_guess_does_not_stand_where_its_own_answer_contradicts_it(monkeypatch):
-    """A box is the same turned 180 deg about an axis. Feature matching's guess is that flip of the
-    truth; the draft, asked for the source turned by the guess, stays there (it fits perfectly).
-    Its own answer, the truth, refined, fits as well: the clouds do not tell which is right, so the
-    draft's answer does not stand and the answer is flagged as ambiguous, without asking the model
-    (a third answer cannot unmake two that fit)."""
+    """A box sampled symmetrically is the same turned 180 deg about an axis. Feature matching's
+    guess is that flip of the truth; the draft, asked for the source turned by the guess, stays
+    there (it fits perfectly). Its own answer, the truth, refined, fits as well: the clouds do not
+    tell which is right, so the draft's answer does not stand and the answer is flagged as
+    ambiguous, without asking the model (a third answer cannot unmake two that fit)."""
     from service import registration
 
     rng = np.random.default_rng(5)
     sides = np.array([2.0, 1.0, 0.5])
-    faces = rng.integers(0, 3, 6000)
-    points = rng.uniform(-0.5, 0.5, (6000, 3)) * sides
-    points[np.arange(6000), faces] = np.sign(rng.uniform(-1, 1, 6000)) * sides[faces] / 2  # on the box's faces
+    faces = rng.integers(0, 3, 3000)
+    points = rng.uniform(-0.5, 0.5, (3000, 3)) * sides
+    points[np.arange(3000), faces] = np.sign(rng.uniform(-1, 1, 3000)) * sides[faces] / 2  # on the box's faces
+    points = np.concatenate([points, points * [-1.0, -1.0, 1.0]])  # each point's twin half a turn about z
     truth = euler_to_matrix([20.0, 10.0, 0.0])
     flip = truth @ euler_to_matrix([180.0, 0.0, 0.0])  # about the box's z axis: the same box
     monkeypatch.setattr(registration, "feature_match", lambda *args: (flip, np.zeros(3)))

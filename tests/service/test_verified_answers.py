@@ -126,6 +126,13 @@ def box_surface(count: int, rng: np.random.Generator) -> np.ndarray:
     return points
 
 
+def symmetric_box(count: int, rng: np.random.Generator) -> np.ndarray:
+    """box_surface points and each one's twin half a turn about the box's short axis: that turn fits
+    exactly as well as no turn, whatever the inlier distance."""
+    points = box_surface(count // 2, rng)
+    return np.concatenate([points, points * [-1.0, -1.0, 1.0]])
+
+
 def test_an_answer_another_answer_contradicts_is_not_verified():
     """The "network" answers the box turned 180 degrees, a fit as good as the true motion's, which
     feature matching finds: two verified answers contradict each other, so neither is verified."""
@@ -227,9 +234,9 @@ def test_a_contradicted_answer_gives_way_to_the_best_fitting_one():
 
 
 def test_the_rotated_starts_judge_a_verified_answer(monkeypatch):
-    """The model and feature matching agree on the box turned 180 deg, which passes the check. The
-    rotated starts, judging it, find the true motion, which passes too: the clouds do not tell the
-    two apart, so the answer (the better fitting) is flagged."""
+    """The model and feature matching agree on a symmetric box turned 180 deg, which passes the
+    check. The rotated starts, judging it, find the true motion, which passes too: the clouds do not
+    tell the two apart, so the answer (either, as they fit alike) is flagged."""
     import asyncio
 
     from conftest import kabsch, pipeline_inputs
@@ -239,7 +246,7 @@ def test_the_rotated_starts_judge_a_verified_answer(monkeypatch):
 
     rng = np.random.default_rng(5)
     rotation = euler_to_matrix([20.0, 10.0, 5.0])
-    source = box_surface(3000, rng)
+    source = symmetric_box(3000, rng)
     flip = rotation @ np.diag([-1.0, -1.0, 1.0]) @ rotation.T  # half a turn about the box's own short axis
     monkeypatch.setattr(registration, "feature_match", lambda *args: (flip @ rotation, np.zeros(3)))
 
@@ -251,4 +258,59 @@ def test_the_rotated_starts_judge_a_verified_answer(monkeypatch):
     options = pipeline_inputs(768, flipped_at_full_size, refine={}, method="auto")
     answer = asyncio.run(registration.register_clouds(source, source @ rotation.T, *options))
     assert answer.verified is False and answer.reason.startswith("ambiguous"), answer.reason
-    assert answer.stage == "multistart" and rotation_angle_deg(answer.rotation, rotation) < 0.01
+    assert min(rotation_angle_deg(answer.rotation, turn) for turn in (rotation, flip @ rotation)) < 0.01
+
+
+def test_a_verified_rival_that_fits_worse_with_looser_inliers_does_not_contradict():
+    """A wrong pose can pass the check on chance inliers, spread across the inlier distance; a right
+    answer's lie near the surfaces. A verified rival that fits no better, with inlier residuals 1.25x
+    the answer's or more, does not contradict it; one about as tight does."""
+    import dataclasses
+
+    from service.registration import _unless_contradicted
+
+    result = box_answer()
+    answer = dataclasses.replace(result, rotation=np.eye(3), verified=True, reason=None, fitness=0.95, inlier_rmse=0.2)
+    flip = euler_to_matrix([180.0, 0.0, 0.0])
+    loose = dataclasses.replace(answer, rotation=flip, fitness=0.6, inlier_rmse=0.5)
+    as_tight = dataclasses.replace(loose, inlier_rmse=0.22)
+    fitting_better = dataclasses.replace(loose, fitness=0.96)
+
+    assert _unless_contradicted(answer, [answer, loose]).verified is True
+    for rival in (as_tight, fitting_better):
+        flagged = _unless_contradicted(answer, [answer, rival])
+        assert flagged.verified is False and flagged.reason.startswith("ambiguous")
+
+
+def test_a_draft_answer_at_feature_matchings_turn_is_judged_by_its_half_turns(monkeypatch):
+    """A box with a block on one face, turned 150 deg, beyond the draft's reach. Feature matching
+    lands on the box turned half a turn from the truth (the block aside, it fits), and so does the
+    draft asked from there: verified and confirmed. Its half turns about the target's principal axes
+    find the truth, which fits better with tighter inliers: it is the answer, verified. The model is
+    never asked."""
+    import asyncio
+
+    from conftest import pipeline_inputs
+
+    from service import registration
+    from service.batcher import Prediction
+    from service.registration import Network
+
+    rng = np.random.default_rng(8)
+    block = rng.uniform([1.7, 0.7, 0.5], [2.0, 1.0, 0.6], size=(100, 3))  # on the top face, at a corner
+    source = np.concatenate([box_surface(3000, rng), block])
+    truth = euler_to_matrix([150.0, 40.0, -70.0])
+    flipped = truth @ np.diag([-1.0, -1.0, 1.0])  # the box half a turn about its short axis, then the truth
+    monkeypatch.setattr(registration, "feature_match", lambda *args: (flipped, np.zeros(3)))
+    asked = []
+
+    async def stuck(source_n, target_n):  # answers "no turn": far from the guess, then the guess itself
+        asked.append(len(source_n))
+        return Prediction(np.eye(3), np.zeros(3))
+
+    options, settings, _ = pipeline_inputs(None, None, method="auto", refine={})
+    networks = [Network("object", 768, stuck, draft=Network("object", 384, stuck, "draft"))]
+    answer = asyncio.run(registration.register_clouds(source, source @ truth.T, options, settings, networks))
+    assert asked == [384, 384]
+    assert (answer.stage, answer.verified) == ("multistart", True), answer.reason
+    assert rotation_angle_deg(answer.rotation, truth) < 0.01
