@@ -469,6 +469,7 @@ async def register_clouds(
     discarded: list[dict[str, float]] = []  # the timings of stages that gave no candidate, but were paid for
     features: _FeatureGuess | None = None
     features_answer: RegistrationResult | None = None
+    unconfirmed: list[RegistrationResult] = []
 
     async def ask(network: Network) -> RegistrationResult:
         count = network.network_points
@@ -482,7 +483,9 @@ async def register_clouds(
             # A draft's answer stands only where feature matching, an independent method, agrees; the
             # guess is needed on every path of `auto`, so it comes first.
             features = await run_blocking(_feature_guess, base)
-            draft, paid, features_answer = await _confirmed_draft(base, features, first.draft, options, run_blocking)
+            draft, paid, features_answer, unconfirmed = await _confirmed_draft(
+                base, features, first.draft, options, run_blocking
+            )
             if draft is not None and draft.verified and _turned(draft, base, NETWORK_REACH_DEG):
                 # Asked at feature matching's turn: the starts do not judge it, its half turns do.
                 flipped, cost = await run_blocking(_half_turns, base, draft, first.model, options)
@@ -497,6 +500,7 @@ async def register_clouds(
             answers.append(await ask(network))
             if answers[-1].verified:
                 break
+        answers += unconfirmed  # the draft's verified answers feature matching did not confirm: judged with the rest
         if not answers[0].verified and options.method == "ifnet":
             return answers[0]
     # Feature matching: the global path's cheapest stage, and a second opinion on a verified answer.
@@ -534,10 +538,11 @@ async def _confirmed_draft(
     draft: Network,
     options: RegistrationOptions,
     run_blocking: RunBlocking,
-) -> tuple[RegistrationResult | None, list[dict[str, float]], RegistrationResult | None]:
+) -> tuple[RegistrationResult | None, list[dict[str, float]], RegistrationResult | None, list[RegistrationResult]]:
     """The draft's answer where feature matching confirms it, else None and the timings of the
-    draft's answers set aside (paid for, but no candidate); and the guess refined and checked when
-    that was needed (a candidate of the rest of the pipeline).
+    draft's answers set aside (paid for, but no candidate); the guess refined and checked when that
+    was needed, and the draft's verified answers set aside: candidates of the rest of the pipeline,
+    which judges them with its own (an answer the guess does not confirm may still be right).
 
     The draft is asked for the source as it lies and, unless that answer is verified, again for
     the source turned by the guess: the network knows turns of up to 45 deg, the guess any turn.
@@ -554,6 +559,7 @@ async def _confirmed_draft(
     paid: list[dict[str, float]] = []  # the timings of the draft's answers refined and checked
     unrefined: list[Prediction] = []  # the draft's answers set aside unrefined (too far from the guess)
     refined: list[RegistrationResult] = []  # the guess refined and checked, once needed
+    finished: list[RegistrationResult] = []  # the draft's answers refined and checked
 
     async def ask(start: np.ndarray) -> tuple[Prediction, bool]:
         turned = (prepared.source_network @ start.T).astype(np.float32)
@@ -568,6 +574,7 @@ async def _confirmed_draft(
         unrefined[:] = [other for other in unrefined if other is not prediction]
         answer = await run_blocking(_finish, prepared, prediction, draft, options, start)
         paid.append(answer.timings_ms)
+        finished.append(answer)
         return answer
 
     async def confirmed(answer: RegistrationResult) -> bool:
@@ -580,16 +587,18 @@ async def _confirmed_draft(
         alike = refined[0].verified if answer.verified else refined[0].unpinned
         return alike and rotation_angle_deg(refined[0].rotation, answer.rotation) <= AGREEMENT_DEG
 
-    def stands(answer: RegistrationResult) -> tuple[RegistrationResult, list, None]:
+    def stands(answer: RegistrationResult) -> tuple[RegistrationResult, list, None, list]:
         spent = paid + [other.timings_ms for other in refined]
         _charged(answer, [timings for timings in spent if timings is not answer.timings_ms])
         if not refined:  # the guess alone confirmed it: its time still counts
             answer.timings_ms["postprocess_ms"] += features.seconds * 1000.0
-        return answer, [], None
+        return answer, [], None, []
 
-    def set_aside() -> tuple[None, list, RegistrationResult | None]:
+    def set_aside() -> tuple[None, list, RegistrationResult | None, list[RegistrationResult]]:
         unpaid = [_model_timings([prediction]) | {"postprocess_ms": 0.0} for prediction in unrefined]
-        return None, paid + unpaid, refined[0] if refined else None
+        kept = [answer for answer in finished if answer.verified]
+        spent = [timings for timings in paid if all(timings is not answer.timings_ms for answer in kept)]
+        return None, spent + unpaid, refined[0] if refined else None, kept
 
     own_prediction, near = await ask(np.eye(3))
     own = await finish(own_prediction, np.eye(3)) if near else None

@@ -574,3 +574,31 @@ def test_global_does_not_verify_a_pose_that_a_symmetric_shape_fits_twice(monkeyp
     answer = register(source, target, 384, method="global", refine={})
     assert answer.stage in ("features", "multistart") and not answer.verified
     assert answer.reason.startswith("ambiguous")
+
+
+def test_a_verified_draft_answer_feature_matching_does_not_confirm_stays_a_candidate(real_scans, monkeypatch):
+    """Feature matching's guess lies 25 deg and 50 m off, so the draft's verified answer does not
+    stand; the model's answer and every later draft call (the rotated starts) are spoiled. The
+    draft's answer is not thrown away: judged with the other answers, it is the answer, verified."""
+    from service import registration
+
+    guess = euler_to_matrix([25.0, 0.0, 0.0]) @ TRUE_ROTATION, TRUE_TRANSLATION + 50.0
+    monkeypatch.setattr(registration, "feature_match", lambda *args: guess)
+    asked = []
+    right_once = recording(asked, "draft")
+
+    async def draft_call(source_n, target_n):
+        if not asked:
+            return await right_once(source_n, target_n)
+        asked.append(("draft", len(source_n)))
+        return Prediction(np.eye(3), np.zeros(3))
+
+    spoiled = recording(asked, "model", turn=euler_to_matrix([0.0, 60.0, 0.0]))
+    networks = [Network("object", 768, spoiled, draft=Network("object", 384, draft_call, "draft"))]
+    options, settings, _ = pipeline_inputs(None, None, method="auto")
+    source = real_scans["kitti_000008_fov"]
+    target = apply_transform(source, TRUE_ROTATION, TRUE_TRANSLATION)
+    result = asyncio.run(register_clouds(source, target, options, settings, networks))
+    assert ("model", 768) in asked  # the draft's answer did not stand
+    assert (result.stage, result.verified) == ("draft", True), result.reason
+    assert rotation_angle_deg(result.rotation, TRUE_ROTATION) < 0.01
