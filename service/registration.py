@@ -82,7 +82,9 @@ AGREEMENT_DEG = 5.0  # two fitting answers further apart than this contradict ea
 # A draft's answer further than this from feature matching's guess is set aside unrefined: refinement
 # would not bring the two within AGREEMENT_DEG (a draft's answer is 4-15 deg off on ModelNet, median).
 DRAFT_REACH_DEG = 30.0
-NETWORK_REACH_DEG = 45.0  # the turns the networks were trained on, per axis
+# The networks learnt turns of up to this per axis: a draft's answer turned further from `init` may be
+# the guess's, which the rotated starts do not judge.
+NETWORK_REACH_DEG = 45.0
 RIVAL_FITNESS_MARGIN = 0.05  # an unverified answer fitting within this of a verified one also contradicts it
 RIVAL_RMSE_SHARE = 0.8  # a verified answer this much tighter than a verified rival, and fitting as well, outranks it
 Stage = Literal["ifnet", "draft", "multistart", "features"]
@@ -661,8 +663,7 @@ def _confirms(guess: _FeatureGuess, answer: RegistrationResult) -> bool:
 def _tighter(answer: RegistrationResult, other: RegistrationResult) -> bool:
     """`answer` fits at least as well as `other`, its inliers much nearer the surface: those of a right
     answer lie within the sampling gap and the noise, those of a wrong pose anywhere within the
-    inlier distance (on ModelNet, every wrong answer verified had residuals within 0.94-1.09x of its
-    verified rivals', a right one 0.0-0.9x, mostly below 0.75x)."""
+    inlier distance (measured in service/README.md, "POST /register")."""
     return answer.fitness >= other.fitness and answer.inlier_rmse < RIVAL_RMSE_SHARE * other.inlier_rmse
 
 
