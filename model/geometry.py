@@ -469,10 +469,10 @@ class AlignmentClouds:
             constraint=inlier_constraint(matched, normals) if len(matched) else 0.0,
         )
 
-    def fitness(self, rotation: np.ndarray, translation: np.ndarray, spacings: float, count: int) -> float:
-        """The share of (a seeded subset of `count` of) the source points with a target point within
-        `spacings` point spacings: score's fitness, cheap enough to rank many coarse answers."""
-        moved = apply_transform(subset(self.source, count), rotation, translation)
+    def fitness(self, points: np.ndarray, rotation: np.ndarray, translation: np.ndarray, spacings: float) -> float:
+        """The share of `points` (some of the source's, e.g. a subset) moved by (R, t) with a target
+        point within `spacings` point spacings: score's fitness, cheap enough to rank many coarse answers."""
+        moved = apply_transform(points, rotation, translation)
         distances, _ = self.target_tree.query(moved, k=1, distance_upper_bound=spacings * self.spacing)
         return float(np.isfinite(distances).mean())
 

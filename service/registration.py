@@ -388,9 +388,10 @@ def _rivals(
     """The best few coarse answers by fitness, each refined and checked. With verified answers to
     judge (`settled`), only their rivals: none, where no coarse answer fits loosely as well."""
     check = prepared.check
+    source = subset(check.source, STARTS_SCORE_POINTS)  # drawn once for every coarse answer
 
     def fit(rotation: np.ndarray, translation: np.ndarray, spacings: float) -> float:
-        return check.fitness(rotation, translation, spacings, STARTS_SCORE_POINTS)
+        return check.fitness(source, rotation, translation, spacings)
 
     ranked = [(fit(rotation, translation, INLIER_SPACINGS), rotation, translation) for rotation, translation in coarse]
     if settled:
@@ -491,10 +492,7 @@ async def register_clouds(
             if draft is not None and draft.verified and _turned(draft, base, NETWORK_REACH_DEG):
                 # Asked at feature matching's turn: the starts do not judge it, its half turns do.
                 flipped, cost = await run_blocking(_half_turns, base, draft, first.model, options)
-                judged = [draft, *flipped]
-                given = _given(judged, options.method)
-                others = [answer.timings_ms for answer in judged if answer.timings_ms is not given.timings_ms]
-                return _charged(given, others + [cost])
+                return _given_and_charged([draft, *flipped], options.method, [cost])
             if draft is not None:
                 return draft
             discarded += paid
@@ -527,11 +525,7 @@ async def register_clouds(
         answers += found
         discarded.append(cost)
     # `ifnet` answers with the network, whatever else fits; the other stages only judge it.
-    given = _given(answers, options.method)
-    # The request paid for every stage that ran.
-    return _charged(
-        given, [answer.timings_ms for answer in answers if answer.timings_ms is not given.timings_ms] + discarded
-    )
+    return _given_and_charged(answers, options.method, discarded)
 
 
 async def _confirmed_draft(
@@ -643,6 +637,16 @@ def _given(answers: list[RegistrationResult], method: str) -> RegistrationResult
         fittest = max(answers, key=lambda answer: answer.fitness)
         judged = dataclasses.replace(fittest, verified=False, reason=judged.reason)
     return judged
+
+
+def _given_and_charged(
+    answers: list[RegistrationResult], method: str, discarded: list[dict[str, float]]
+) -> RegistrationResult:
+    """The answer given (_given), charged with every stage that ran: the other answers' and the
+    `discarded` timings (stages that gave no candidate)."""
+    given = _given(answers, method)
+    others = [answer.timings_ms for answer in answers if answer.timings_ms is not given.timings_ms]
+    return _charged(given, others + discarded)
 
 
 def _charged(answer: RegistrationResult, others: list[dict[str, float]]) -> RegistrationResult:
