@@ -429,25 +429,27 @@ class AlignmentClouds:
     """One pair's clouds made ready once for every refinement and check of its answers: the point
     spacing, scipy's kd-tree of the target and its normals (scores), and small_gicp's clouds with
     their normals and covariances and its kd-tree of the target (refinement). Never changed after
-    construction, so threads may share it; building it takes about as long as a few GICP iterations."""
+    construction, so threads may share it; building it takes about as long as a few GICP iterations.
+    small_gicp runs on `threads` OpenMP threads (it holds the interpreter lock while it runs, so more
+    threads are the only way its work uses more than one CPU)."""
 
-    def __init__(self, source: np.ndarray, target: np.ndarray, spacing: float | None = None):
+    def __init__(self, source: np.ndarray, target: np.ndarray, spacing: float | None = None, threads: int = 1):
         import small_gicp  # imported here so that the rest of this module needs only numpy/scipy
 
         self.source = np.ascontiguousarray(source, dtype=np.float64)
         self.target = np.ascontiguousarray(target, dtype=np.float64)
+        self.threads = threads
         self.spacing = max(point_spacing(self.source), point_spacing(self.target)) if spacing is None else spacing
         self.target_tree = cKDTree(self.target)
         self.target_normals = surface_normals(self.target, self.target_tree)  # once, for every score
         # small_gicp's clouds are centred: far from the origin (map coordinates) its turns, linearised
         # about the origin, lose precision and answers failed the check.
         self.centre = self.target.min(axis=0) / 2 + self.target.max(axis=0) / 2
-        source_cloud = small_gicp.PointCloud(self.source - self.centre)
-        target_cloud = small_gicp.PointCloud(self.target - self.centre)
-        target_gicp_tree = small_gicp.KdTree(target_cloud)
-        small_gicp.estimate_normals_covariances(target_cloud, target_gicp_tree, num_neighbors=20)
-        small_gicp.estimate_normals_covariances(source_cloud, small_gicp.KdTree(source_cloud), num_neighbors=20)
-        self.gicp = GicpClouds(source_cloud, target_cloud, target_gicp_tree)
+        clouds = [small_gicp.PointCloud(points - self.centre) for points in (self.source, self.target)]
+        trees = [small_gicp.KdTree(cloud, num_threads=threads) for cloud in clouds]
+        for cloud, tree in zip(clouds, trees, strict=True):
+            small_gicp.estimate_normals_covariances(cloud, tree, num_neighbors=20, num_threads=threads)
+        self.gicp = GicpClouds(clouds[0], clouds[1], trees[1])
 
     def score(self, rotation: np.ndarray, translation: np.ndarray) -> AlignmentScore:
         """Fitness and inlier RMSE of (R, t) at INLIER_SPACINGS point spacings, both ways, and how
@@ -527,6 +529,7 @@ class AlignmentClouds:
                 init_T_target_source=transform,
                 registration_type=method,
                 max_correspondence_distance=max_distance,
+                num_threads=self.threads,
                 max_iterations=min(step, max_iterations - steps),
                 rotation_epsilon=1e-5,
                 translation_epsilon=1e-6 * max_distance,

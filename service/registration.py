@@ -58,6 +58,9 @@ from service.validation import InvalidInput, check_cloud
 # Feature matching, refinement and the check run on at most this many points per cloud (a seeded
 # subset): their cost grows with it and small_gicp and KISS-Matcher hold the interpreter lock.
 CHECK_MAX_POINTS = 8_000
+# Smaller check clouds refine on one thread: there small_gicp's threads cost more than they save
+# (ONNX Runtime's threads still spin after a model call and take a CPU from them).
+THREADED_CHECK_POINTS = 4_000
 REFINE_MAX_SECONDS = 10.0
 # The refinement's first, coarse pass, in normalised units (clouds of radius NETWORK_RADIUS).
 COARSE_DISTANCE_NORMALISED = 0.05
@@ -189,10 +192,12 @@ def _prepare(
     count: int,
     options: RegistrationOptions,
     settings: Settings,
+    threads: int = 1,
     base: _Prepared | None = None,
 ) -> _Prepared:
-    """The pair made ready for a network of `count` points; `base`, the same pair made ready for
-    another count, lends its checked distinct points and its check's clouds."""
+    """The pair made ready for a network of `count` points, its check on `threads` (when its clouds
+    are large enough to gain from them); `base`, the same pair made ready for another count, lends
+    its checked distinct points and its check's clouds."""
     started = time.perf_counter()
     clouds, sampled, reports = {}, {}, {}
     for name, points in (("source", source), ("target", target)):
@@ -207,7 +212,9 @@ def _prepare(
     source_sampled = apply_transform(sampled["source"], *from_matrix(init))
     normalisation = Normalisation(source_sampled, sampled["target"])
     if base is None:  # the same for every point count: built once per request
-        check = AlignmentClouds(*(subset(clouds[name], CHECK_MAX_POINTS) for name in ("source", "target")))
+        source_check, target_check = (subset(clouds[name], CHECK_MAX_POINTS) for name in ("source", "target"))
+        threads = threads if min(len(source_check), len(target_check)) > THREADED_CHECK_POINTS else 1
+        check = AlignmentClouds(source_check, target_check, threads=threads)
     else:
         check = base.check
     return _Prepared(
@@ -451,6 +458,7 @@ async def register_clouds(
     settings: Settings,
     networks: Sequence[Network],
     run_blocking: RunBlocking = asyncio.to_thread,
+    threads: int = 1,
 ) -> RegistrationResult:
     """Register `source` onto `target` (both N x 3 in user units, already through `as_points`).
 
@@ -459,13 +467,14 @@ async def register_clouds(
     `options.method` picks the path: the first network (`ifnet`), the global search with the first
     network (`global`), or the networks in turn (the first one's draft before it) until an answer
     passes the check and, when none does, the global search (`auto`). The CPU-heavy steps run
-    through `run_blocking` (a worker thread by default) so that the event loop keeps serving. Raises
-    InvalidInput for clouds that cannot be registered.
+    through `run_blocking` (a worker thread by default) so that the event loop keeps serving;
+    refinement and the check run on `threads` where the clouds are large. Raises InvalidInput for
+    clouds that cannot be registered.
     """
     first = networks[0]
     auto = options.method == "auto"
     count = (first.draft or first).network_points if auto else first.network_points
-    prepared = {count: await run_blocking(_prepare, source, target, count, options, settings)}
+    prepared = {count: await run_blocking(_prepare, source, target, count, options, settings, threads)}
     # The global path runs on the first clouds prepared: the check's clouds are the same for every count.
     base = prepared[count]
     answers: list[RegistrationResult] = []
@@ -477,7 +486,7 @@ async def register_clouds(
     async def ask(network: Network) -> RegistrationResult:
         count = network.network_points
         if count not in prepared:  # a model exported for another point count; the check's clouds are the same
-            prepared[count] = await run_blocking(_prepare, source, target, count, options, settings, base)
+            prepared[count] = await run_blocking(_prepare, source, target, count, options, settings, threads, base)
         prediction = await network.predict(prepared[count].source_network, prepared[count].target_network)
         return await run_blocking(_finish, prepared[count], prediction, network, options)
 
@@ -732,7 +741,10 @@ async def register_pairs(
     queue if the client disconnects while they wait.
     """
     options, networks = resolve_options(options, service)
-    room = service.settings.max_queue_size
+    settings = service.settings
+    # small_gicp's threads, as a model call's: all of them for a request alone in its worker.
+    threads = settings.threads if service.in_flight <= 1 and len(pairs) == 1 else 1
+    room = settings.max_queue_size
     if len(pairs) > room:  # could never be queued at once, however long the client waited
         raise InvalidInput(
             "source", f"holds {len(pairs)} pairs, more than this service queues at once; send at most {room}"
@@ -740,7 +752,7 @@ async def register_pairs(
 
     async def one(index: int, source: np.ndarray, target: np.ndarray) -> RegistrationResult:
         try:
-            result = await register_clouds(source, target, options, service.settings, networks)
+            result = await register_clouds(source, target, options, settings, networks, threads=threads)
         except InvalidInput as error:
             if len(pairs) == 1:
                 raise

@@ -202,3 +202,31 @@ def test_feature_matching_finds_the_motion_of_clouds_far_from_the_origin():
     found_rotation, found_translation = feature_match(source, target, point_spacing(source))
     assert rotation_angle_deg(found_rotation, rotation) < 2.0
     assert np.linalg.norm(apply_transform(source, found_rotation, found_translation) - target, axis=1).max() < 0.5
+
+
+def test_threads_refine_and_check_as_one_thread_does(monkeypatch):
+    """small_gicp on two threads (every call of it) gives the refinement and the verdict of one."""
+    import small_gicp
+
+    source, target, rotation, translation = pair(jitter=0.005)
+    start = turned(rotation, translation, 3.0, apply_transform(source, rotation, translation).mean(axis=0))
+    threads_used = []
+    align = small_gicp.align
+
+    def recording(*args, **kwargs):
+        threads_used.append(kwargs["num_threads"])
+        return align(*args, **kwargs)
+
+    monkeypatch.setattr(small_gicp, "align", recording)
+    answers = {}
+    for threads in (1, 2):
+        clouds = AlignmentClouds(source, target, threads=threads)
+        refined = clouds.refine(*start)
+        answers[threads] = (refined, clouds.verify(*refined[:2]))
+        assert set(threads_used) == {threads}
+        threads_used.clear()
+    (one, one_verdict), (two, two_verdict) = answers[1], answers[2]
+    np.testing.assert_allclose(two[0], one[0], atol=1e-9)
+    np.testing.assert_allclose(two[1], one[1], atol=1e-9)
+    assert one_verdict.verified and two_verdict.verified
+    assert two_verdict.drift == pytest.approx(one_verdict.drift, abs=1e-6)

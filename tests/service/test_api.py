@@ -862,3 +862,31 @@ async def test_v2_infer_on_the_shipped_model_matches_register(serve, shipped_mod
     np.testing.assert_allclose(outputs["rotation"].reshape(3, 3), reference.json()["rotation"], atol=1e-6)
     np.testing.assert_allclose(outputs["translation"], reference.json()["translation"], atol=1e-5)
     assert math.isfinite(reference.json()["fitness"])
+
+
+async def test_a_request_alone_refines_large_clouds_on_every_thread(serve, tiny_model, monkeypatch):
+    """small_gicp gets the worker's threads for check clouds above THREADED_CHECK_POINTS when no other
+    request is in flight, as a lone model call does; one thread for small clouds or beside others."""
+    from service import registration
+
+    threads_used = []
+
+    class Recording(registration.AlignmentClouds):
+        def __init__(self, *args, **kwargs):
+            super().__init__(*args, **kwargs)
+            threads_used.append(self.threads)
+
+    monkeypatch.setattr(registration, "AlignmentClouds", Recording)
+    rng = np.random.default_rng(3)
+    large = rng.normal(size=(registration.THREADED_CHECK_POINTS + 500, 3))
+    small = rng.normal(size=(registration.THREADED_CHECK_POINTS // 2, 3))
+    limits = {"max_cloud_points": 10_000, "max_body_bytes": 2_000_000, "threads": 2, "workers": 1}
+    async with serve(settings_for(tiny_model, **limits)) as (app, client):
+        for cloud in (large, small):
+            response = await client.post("/register", json=body(cloud, cloud + 0.1, method="ifnet"))
+            assert response.status_code == 200, response.text
+        app.state.service.in_flight += 1  # another request under way
+        response = await client.post("/register", json=body(large, large + 0.1, method="ifnet"))
+        app.state.service.in_flight -= 1
+        assert response.status_code == 200, response.text
+    assert threads_used == [2, 1, 1]

@@ -549,7 +549,7 @@ def test_a_second_point_count_reuses_the_pairs_checked_points(monkeypatch):
     fresh = registration._prepare(source, target, 32, options, settings)
     checked = []
     monkeypatch.setattr(registration, "check_cloud", lambda *args: checked.append(args) or args[0])
-    second = registration._prepare(source, target, 32, options, settings, first)
+    second = registration._prepare(source, target, 32, options, settings, base=first)
     assert checked == [] and second.check is first.check and second.source is first.source
     np.testing.assert_array_equal(second.source_network, fresh.source_network)
     np.testing.assert_array_equal(second.target_network, fresh.target_network)
