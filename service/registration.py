@@ -16,7 +16,10 @@ unverified). Where the method allows and the answer fails the check, the other n
 turn, then the global path: feature matching (also a second opinion on a verified answer), then
 the first network's draft (or the network) from 24 rotated starts, which also judge a verified
 answer: a start that lands far from it and fits as well (a symmetric shape) contradicts it.
-`register_pairs` runs a request's pairs through it and the models' batchers.
+Whatever the path, a verified answer that matches little of the source is slid back and forth
+beside itself: a pose there that fits clearly better and passes the check too leaves the pair
+ambiguous (`_unless_slid`). `register_pairs` runs a request's pairs through it and the models'
+batchers.
 """
 
 import asyncio
@@ -88,6 +91,14 @@ DRAFT_REACH_DEG = 30.0
 # The networks learnt turns of up to this per axis: a draft's answer turned further from `init` may be
 # the guess's, which the rotated starts do not judge.
 NETWORK_REACH_DEG = 45.0
+# A verified answer matching less than SLIDE_FITNESS of the source may lie beside the truth, slid along
+# the surfaces where part of the clouds still overlaps (refined there, the check passes it): it is slid
+# back and forth by SLIDE_SHARE of the extent along each principal axis of the target, refined on
+# SLIDE_POINTS points, and a pose fitting SLIDE_MARGIN better, verified in full, replaces it.
+SLIDE_FITNESS = 0.75
+SLIDE_SHARE = 0.1
+SLIDE_POINTS = 500
+SLIDE_MARGIN = 0.1
 RIVAL_FITNESS_MARGIN = 0.05  # an unverified answer fitting within this of a verified one also contradicts it
 RIVAL_RMSE_SHARE = 0.8  # a verified answer this much tighter than a verified rival, and fitting as well, outranks it
 Stage = Literal["ifnet", "draft", "multistart", "features"]
@@ -434,6 +445,45 @@ def _half_turns(
     return [_result(prepared, candidate, "multistart", model, options, _FREE) for candidate in candidates], cost
 
 
+def _unless_slid(prepared: _Prepared, answer: RegistrationResult, options: RegistrationOptions) -> RegistrationResult:
+    """The answer, or a pose beside it that fits clearly better and passes the check too (see
+    SLIDE_FITNESS), not verified: both pass, and where the scene repeats itself (shelves, a
+    corridor) the better fitting one may be the wrong one. Charged with the time the search took."""
+    started = time.perf_counter()
+    check = prepared.check
+    small = AlignmentClouds(subset(check.source, SLIDE_POINTS), subset(check.target, SLIDE_POINTS), check.spacing)
+    scored = subset(check.source, STARTS_SCORE_POINTS)
+
+    def fit(rotation: np.ndarray, translation: np.ndarray) -> float:
+        return check.fitness(scored, rotation, translation, INLIER_SPACINGS)
+
+    distances = refine_distances(check.spacing, prepared.normalisation.scale)
+    extent = float(np.linalg.norm(check.target.max(axis=0) - check.target.min(axis=0)))
+    _, axes = np.linalg.eigh(np.cov((check.target - check.target.mean(axis=0)).T))
+    bar = (1.0 + SLIDE_MARGIN) * fit(answer.rotation, answer.translation)
+    best, best_fitness = answer, None  # the check's fitness (a user's threshold may set answer.fitness's)
+    for axis in axes.T:
+        for sign in (1.0, -1.0):
+            rotation, translation = answer.rotation, answer.translation + sign * SLIDE_SHARE * extent * axis
+            for distance in distances:
+                rotation, translation, _ = small.refine(rotation, translation, distance)
+            if fit(rotation, translation) <= bar:
+                continue
+            candidate = _checked(prepared, rotation, translation, options.refine or RefineOptions())
+            if best_fitness is None:
+                best_fitness = check.score(answer.rotation, answer.translation).fitness
+            fitness = candidate.verification.score.fitness
+            if candidate.verification.verified and fitness > (1.0 + SLIDE_MARGIN) * best_fitness:
+                best = _result(prepared, candidate, answer.stage, answer.model, options, dict(answer.timings_ms))
+                best_fitness = fitness
+    best.timings_ms["postprocess_ms"] += (time.perf_counter() - started) * 1000.0
+    if best is answer:
+        return answer
+    away = float(np.linalg.norm(best.translation - answer.translation)) / extent
+    reason = f"ambiguous: a pose {away:.0%} of the extent away also passes the check (a repeating scene?)"
+    return dataclasses.replace(best, verified=False, reason=reason)
+
+
 _FREE_MODEL = {"queue_ms": 0.0, "inference_ms": 0.0, "batch_size": 0}
 _FREE = _FREE_MODEL | {"postprocess_ms": 0.0}  # the timings of a candidate whose cost is paid in its stage's
 
@@ -472,11 +522,30 @@ async def register_clouds(
     clouds that cannot be registered.
     """
     first = networks[0]
+    count = (first.draft or first).network_points if options.method == "auto" else first.network_points
+    base = await run_blocking(_prepare, source, target, count, options, settings, threads)
+    answer = await _answer(source, target, base, options, settings, networks, run_blocking, threads)
+    if answer.verified and answer.fitness < SLIDE_FITNESS:  # it may lie beside the truth
+        return await run_blocking(_unless_slid, base, answer, options)
+    return answer
+
+
+async def _answer(
+    source: np.ndarray,
+    target: np.ndarray,
+    base: _Prepared,
+    options: RegistrationOptions,
+    settings: Settings,
+    networks: Sequence[Network],
+    run_blocking: RunBlocking,
+    threads: int,
+) -> RegistrationResult:
+    """register_clouds' answer before its slide check, from the pair made ready (`base`) for the
+    first network asked."""
+    first = networks[0]
     auto = options.method == "auto"
-    count = (first.draft or first).network_points if auto else first.network_points
-    prepared = {count: await run_blocking(_prepare, source, target, count, options, settings, threads)}
     # The global path runs on the first clouds prepared: the check's clouds are the same for every count.
-    base = prepared[count]
+    prepared = {len(base.source_network): base}
     answers: list[RegistrationResult] = []
     discarded: list[dict[str, float]] = []  # the timings of stages that gave no candidate, but were paid for
     features: _FeatureGuess | None = None

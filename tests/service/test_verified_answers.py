@@ -314,3 +314,139 @@ def test_a_draft_answer_at_feature_matchings_turn_is_judged_by_its_half_turns(mo
     assert asked == [384, 384]
     assert (answer.stage, answer.verified) == ("multistart", True), answer.reason
     assert rotation_angle_deg(answer.rotation, truth) < 0.01
+
+
+def room(rng: np.random.Generator, boxes: list[tuple[float, float]], count: int = 6000) -> np.ndarray:
+    """A floor and a back wall along x in [0, 6], boxes (x centre, width) standing against the wall."""
+    floor = np.column_stack([rng.uniform(0, 6, count), rng.uniform(0, 2, count), np.zeros(count)])
+    wall = np.column_stack([rng.uniform(0, 6, count // 2), np.full(count // 2, 2.0), rng.uniform(0, 1, count // 2)])
+    parts = [floor, wall]
+    for centre, width in boxes:
+        box = np.column_stack(
+            [rng.uniform(centre - width / 2, centre + width / 2, count // 10), rng.uniform(1.6, 2.0, count // 10)]
+        )
+        box = np.column_stack([box, rng.uniform(0, 0.4, len(box))])
+        face = rng.integers(0, 3, len(box))  # the front, the top or a side
+        box[face == 0, 1], box[face == 1, 2] = 1.6, 0.4
+        box[face == 2, 0] = centre + np.where(rng.random((face == 2).sum()) < 0.5, -width, width) / 2
+        parts.append(box)
+    return np.concatenate(parts)
+
+
+def stepped_wall(rng: np.random.Generator, count: int = 6000) -> np.ndarray:
+    """A floor and a back wall along x in [0, 6] whose height steps irregularly, with a fin standing
+    out of the wall at every step: no slide repeats it."""
+    steps, heights = [0.0, 0.7, 1.1, 2.4, 2.9, 3.3, 4.5, 5.2, 6.0], [0.5, 1.0, 0.3, 0.8, 0.6, 1.2, 0.4, 0.9]
+    parts = [np.column_stack([rng.uniform(0, 6, count // 2), rng.uniform(0, 2, count // 2), np.zeros(count // 2)])]
+    for start, end, height in zip(steps[:-1], steps[1:], heights, strict=True):
+        size, fin = int(count * (end - start) / 6 * height), count // 20
+        parts.append(np.column_stack([rng.uniform(start, end, size), np.full(size, 2.0), rng.uniform(0, height, size)]))
+        parts.append(np.column_stack([np.full(fin, end), rng.uniform(1.7, 2.0, fin), rng.uniform(0, height, fin)]))
+    return np.concatenate(parts)
+
+
+def prepared_pair(source, target):
+    from conftest import pipeline_inputs
+
+    from service import registration
+
+    options, settings, _ = pipeline_inputs(None, None, method="auto", refine={})
+    return registration._prepare(source, target, 384, options, settings), options
+
+
+def two_captures(scene):
+    """Two captures of a scene, x <= 4 and x >= 2 (half of the source overlaps), the second moved:
+    the pair made ready as `auto` makes it, the options, and the true rotation and translation."""
+    rng = np.random.default_rng(0)
+    first, second = scene(rng), scene(rng)
+    rotation, translation = euler_to_matrix([5.0, 3.0, -4.0]), np.array([0.2, -0.1, 0.05])
+    target = apply_transform(second[second[:, 0] >= 2], rotation, translation)
+    return *prepared_pair(first[first[:, 0] <= 4], target), rotation, translation
+
+
+def checked_answer(prepared, options, rotation, translation):
+    """An answer at (R, t), refined and checked as the pipeline refines and checks its answers."""
+    from service import registration
+    from service.schemas import RefineOptions
+
+    candidate = registration._checked(prepared, rotation, translation, RefineOptions())
+    return registration._result(prepared, candidate, "features", "object", options, dict(registration._FREE))
+
+
+def slid_sample(prepared, options, rotation, translation):
+    """The sample pair's truth slid by a tenth of the extent along the target's longest axis, refined
+    and checked; and the extent."""
+    cloud = prepared.check.target
+    extent = float(np.linalg.norm(cloud.max(axis=0) - cloud.min(axis=0)))
+    longest = np.linalg.eigh(np.cov((cloud - cloud.mean(axis=0)).T))[1][:, -1]
+    return checked_answer(prepared, options, rotation, translation + 0.1 * extent * longest), extent
+
+
+def test_a_right_answer_with_no_better_pose_beside_it_stays_verified():
+    from service import registration
+
+    prepared, options, rotation, translation = two_captures(stepped_wall)
+    answer = checked_answer(prepared, options, rotation, translation)
+    assert answer.verified and answer.fitness < registration.SLIDE_FITNESS  # half of it overlaps: it is looked at
+    assert registration._unless_slid(prepared, answer, options) is answer
+
+
+def test_a_verified_pose_slid_beside_the_truth_gives_way_to_it_flagged():
+    """On the sample pair, the truth slid by a tenth of the extent along the target's longest axis and
+    refined still passes the check, matching 0.4-0.5 of the source where the truth matches 0.8. A slide
+    back finds the truth: it is given, not verified, since both pass."""
+    from service import registration
+
+    source, target, truth = sample_pair(turned=False)
+    prepared, options = prepared_pair(source, target)
+    rotation, translation = from_matrix(truth)
+    slid, extent = slid_sample(prepared, options, rotation, translation)
+    assert slid.verified and np.linalg.norm(slid.translation - translation) > 0.05 * extent  # wrong, and verified
+    answer = registration._unless_slid(prepared, slid, options)
+    assert not answer.verified and answer.reason.startswith("ambiguous: a pose")
+    assert np.linalg.norm(answer.translation - translation) < 0.01 * extent
+    assert rotation_angle_deg(answer.rotation, rotation) < 0.5 and answer.fitness > 1.5 * slid.fitness
+    assert answer.timings_ms["postprocess_ms"] > slid.timings_ms["postprocess_ms"]
+
+
+def test_on_evenly_spaced_shelves_the_right_answer_is_flagged_ambiguous():
+    """Where the scene repeats itself, a pose one box along fits better than the truth: neither is verified."""
+    from service import registration
+
+    prepared, options, rotation, translation = two_captures(
+        lambda rng: room(rng, [(0.25 + 0.5 * k, 0.2) for k in range(12)])
+    )
+    answer = checked_answer(prepared, options, rotation, translation)
+    assert answer.verified
+    judged = registration._unless_slid(prepared, answer, options)
+    assert not judged.verified and "ambiguous" in judged.reason
+
+
+def test_every_path_looks_beside_a_verified_answer_that_matches_little(monkeypatch):
+    """register_clouds hands a verified answer matching less than SLIDE_FITNESS of the source to the
+    slide check, and no other."""
+    import asyncio
+
+    from conftest import pipeline_inputs
+
+    from service import registration
+    from service.registration import Network
+
+    source, target, truth = sample_pair(turned=False)
+    prepared, options = prepared_pair(source, target)
+    rotation, translation = from_matrix(truth)
+    right = checked_answer(prepared, options, rotation, translation)
+    slid, extent = slid_sample(prepared, options, rotation, translation)
+    unverified = checked_answer(prepared, options, rotation, translation + np.array([0.0, 0.0, extent]))
+    assert right.fitness >= registration.SLIDE_FITNESS > slid.fitness and slid.verified and not unverified.verified
+    looked_at = []
+    monkeypatch.setattr(registration, "_unless_slid", lambda prepared, answer, options: looked_at.append(answer))
+    _, settings, _ = pipeline_inputs(None, None)
+    for given in (right, slid, unverified):
+
+        async def answer(*args, given=given):
+            return given
+
+        monkeypatch.setattr(registration, "_answer", answer)
+        asyncio.run(registration.register_clouds(source, target, options, settings, [Network("object", 384, None)]))
+    assert looked_at == [slid]
