@@ -94,7 +94,8 @@ NETWORK_REACH_DEG = 45.0
 # A verified answer matching less than SLIDE_FITNESS of the source may lie beside the truth, slid along
 # the surfaces where part of the clouds still overlaps (refined there, the check passes it): it is slid
 # back and forth by SLIDE_SHARE of the extent along each principal axis of the target, refined on
-# SLIDE_POINTS points, and a pose fitting SLIDE_MARGIN better, verified in full, replaces it.
+# SLIDE_POINTS points; a pose fitting SLIDE_MARGIN better that passes the check in full makes the pair
+# ambiguous (_unless_slid).
 SLIDE_FITNESS = 0.75
 SLIDE_SHARE = 0.1
 SLIDE_POINTS = 500
