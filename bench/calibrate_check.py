@@ -38,15 +38,15 @@ from model.geometry import (  # noqa: E402
     apply_transform,
     from_matrix,
     point_spacing,
+    principal_axes,
     refine,
     subset,
     to_matrix,
     verify_alignment,
 )
-from service.registration import CHECK_MAX_POINTS, refine_distances  # noqa: E402
+from service.registration import CHECK_MAX_POINTS, SLIDE_SHARE, refine_distances  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
-SLIDE_SHARE = 0.1  # of the extent: the slides of the real scans' wrong answers that passed the check
 MODELNET_SETS = {
     "same": ("same", "clean"),
     "jitter": ("same", "jitter"),
@@ -131,12 +131,12 @@ def candidates(
 
 
 def slid_and_refined(pair: harness.Pair, scale: float, spacing: float) -> list[tuple]:
-    """The truth shifted by SLIDE_SHARE of the extent both ways along each principal axis of the
-    target, refined coarse to fine as the service refines: the poses a refinement settles on when
-    an answer lies beside the truth, where a long or flat scene may fit again."""
+    """The truth shifted by the service's SLIDE_SHARE of the extent both ways along each principal
+    axis of the target, refined coarse to fine as the service refines: the poses a refinement settles
+    on when an answer lies beside the truth, where a long or flat scene may fit again."""
     clouds = AlignmentClouds(pair.source, pair.target, spacing)
     extent = float(np.linalg.norm(pair.target.max(axis=0) - pair.target.min(axis=0)))
-    _, axes = np.linalg.eigh(np.cov((pair.target - pair.target.mean(axis=0)).T))
+    axes = principal_axes(pair.target)
     out = []
     for axis in axes.T:
         for sign in (1.0, -1.0):

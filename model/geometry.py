@@ -268,6 +268,11 @@ class Normalisation:
 ITERATIONS_PER_CALL = 2
 
 
+def principal_axes(points: np.ndarray) -> np.ndarray:
+    """The cloud's principal axes as the columns of a rotation, least spread first."""
+    return np.linalg.eigh(np.cov(points.T))[1]
+
+
 def subset(points: np.ndarray, count: int) -> np.ndarray:
     """At most `count` of the points: a seeded random subset, in their original order."""
     if len(points) <= count:

@@ -47,6 +47,7 @@ from model.geometry import (
     from_matrix,
     nearest_rotation,
     point_spacing,
+    principal_axes,
     resample_indices,
     rotation_angle_deg,
     subset,
@@ -436,7 +437,7 @@ def _half_turns(
     started = time.perf_counter()
     target = prepared.check.target
     centre = target.mean(axis=0)
-    _, axes = np.linalg.eigh(np.cov((target - centre).T))
+    axes = principal_axes(target)
     coarse = []
     for axis in axes.T:
         flip = 2.0 * np.outer(axis, axis) - np.eye(3)  # half a turn about `axis`
@@ -460,7 +461,7 @@ def _unless_slid(prepared: _Prepared, answer: RegistrationResult, options: Regis
 
     distances = refine_distances(check.spacing, prepared.normalisation.scale)
     extent = float(np.linalg.norm(check.target.max(axis=0) - check.target.min(axis=0)))
-    _, axes = np.linalg.eigh(np.cov((check.target - check.target.mean(axis=0)).T))
+    axes = principal_axes(check.target)
     bar = (1.0 + SLIDE_MARGIN) * fit(answer.rotation, answer.translation)
     best, best_fitness = answer, None  # the check's fitness (a user's threshold may set answer.fitness's)
     for axis in axes.T:

@@ -7,6 +7,7 @@ from model.geometry import (
     euler_to_matrix,
     fitness_and_rmse,
     nearest_rotation,
+    principal_axes,
     registration_errors,
     remove_duplicates,
     rotation_angle_deg,
@@ -88,3 +89,11 @@ def test_remove_duplicates_keeps_first_occurrences_in_order():
     (zero_row,) = kept[(kept == [0.0, 0.0, 1.0]).all(axis=1)]
     assert list(np.signbit(zero_row)) == [False, True, False]  # the first of the two, as it was sent
     assert len(remove_duplicates(points)) == 2000 and remove_duplicates(points[:1]).shape == (1, 3)
+
+
+def test_principal_axes_run_from_the_least_spread_to_the_most():
+    rng = np.random.default_rng(0)
+    turn = euler_to_matrix([30.0, -20.0, 50.0])
+    cloud = (rng.normal(size=(2000, 3)) * [0.1, 1.0, 3.0]) @ turn.T + [5.0, -2.0, 1.0]
+    axes = principal_axes(cloud)
+    np.testing.assert_allclose(np.abs(axes.T @ turn), np.eye(3), atol=0.05)  # each axis, up to its sign

@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from model.geometry import apply_transform, euler_to_matrix, from_matrix, rotation_angle_deg
+from model.geometry import apply_transform, euler_to_matrix, from_matrix, principal_axes, rotation_angle_deg
 from service.formats import read_cloud_file
 from service.settings import Settings
 
@@ -378,7 +378,7 @@ def slid_sample(prepared, options, rotation, translation):
     and checked; and the extent."""
     cloud = prepared.check.target
     extent = float(np.linalg.norm(cloud.max(axis=0) - cloud.min(axis=0)))
-    longest = np.linalg.eigh(np.cov((cloud - cloud.mean(axis=0)).T))[1][:, -1]
+    longest = principal_axes(cloud)[:, -1]
     return checked_answer(prepared, options, rotation, translation + 0.1 * extent * longest), extent
 
 
