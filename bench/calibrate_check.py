@@ -126,16 +126,16 @@ def candidates(
     offset = truth.copy()
     offset[:3, 3] += random_axis(rng) * rng.uniform(1.25, 10.0) * harness.RIGHT_TRANSLATION_SHARE * extent
     out.append(("shifted", *from_matrix(offset), 0.0))
-    out += slid_and_refined(pair, normalisation.scale, spacing)
+    out += slid_and_refined(pair, normalisation.scale, spacing, extent)
     return out
 
 
-def slid_and_refined(pair: harness.Pair, scale: float, spacing: float) -> list[tuple]:
-    """The truth shifted by the service's SLIDE_SHARE of the extent both ways along each principal
-    axis of the target, refined coarse to fine as the service refines: the poses a refinement settles
-    on when an answer lies beside the truth, where a long or flat scene may fit again."""
+def slid_and_refined(pair: harness.Pair, scale: float, spacing: float, extent: float) -> list[tuple]:
+    """The truth shifted by the service's SLIDE_SHARE of the target's `extent` (bounding-box
+    diagonal) both ways along each of its principal axes, refined coarse to fine as the service
+    refines: the poses a refinement settles on when an answer lies beside the truth, where a long or
+    flat scene may fit again."""
     clouds = AlignmentClouds(pair.source, pair.target, spacing)
-    extent = float(np.linalg.norm(pair.target.max(axis=0) - pair.target.min(axis=0)))
     axes = principal_axes(pair.target)
     out = []
     for axis in axes.T:

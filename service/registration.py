@@ -473,7 +473,7 @@ def _unless_slid(prepared: _Prepared, answer: RegistrationResult, options: Regis
                 continue
             candidate = _checked(prepared, rotation, translation, options.refine or RefineOptions())
             if best_fitness is None:
-                best_fitness = check.score(answer.rotation, answer.translation).fitness
+                best_fitness = check.fitness(check.source, answer.rotation, answer.translation, INLIER_SPACINGS)
             fitness = candidate.verification.score.fitness
             if candidate.verification.verified and fitness > (1.0 + SLIDE_MARGIN) * best_fitness:
                 best = _result(prepared, candidate, answer.stage, answer.model, options, dict(answer.timings_ms))
