@@ -5,6 +5,7 @@ target ~ source @ R.T + t; 4x4 matrices are homogeneous [[R, t], [0, 1]].
 """
 
 import time
+from collections.abc import Sequence
 from typing import NamedTuple
 
 import numpy as np
@@ -271,6 +272,14 @@ ITERATIONS_PER_CALL = 2
 def principal_axes(points: np.ndarray) -> np.ndarray:
     """The cloud's principal axes as the columns of a rotation, least spread first."""
     return np.linalg.eigh(np.cov(points.T))[1]
+
+
+def slides(translation: np.ndarray, target: np.ndarray, shares: Sequence[float]) -> list[np.ndarray]:
+    """`translation` shifted by each share of the target's extent (bounding-box diagonal), both ways
+    along each principal axis of the target: where an answer slid beside the truth would lie."""
+    extent = float(np.linalg.norm(target.max(axis=0) - target.min(axis=0)))
+    axes = principal_axes(target).T
+    return [translation + sign * share * extent * axis for share in shares for axis in axes for sign in (1.0, -1.0)]
 
 
 def subset(points: np.ndarray, count: int) -> np.ndarray:

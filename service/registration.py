@@ -50,6 +50,7 @@ from model.geometry import (
     principal_axes,
     resample_indices,
     rotation_angle_deg,
+    slides,
     subset,
     to_matrix,
 )
@@ -94,11 +95,12 @@ DRAFT_REACH_DEG = 30.0
 NETWORK_REACH_DEG = 45.0
 # A verified answer matching less than SLIDE_FITNESS of the source may lie beside the truth, slid along
 # the surfaces where part of the clouds still overlaps (refined there, the check passes it): it is slid
-# back and forth by SLIDE_SHARE of the extent along each principal axis of the target, refined on
-# SLIDE_POINTS points; a pose fitting SLIDE_MARGIN better that passes the check in full makes the pair
-# ambiguous (_unless_slid).
+# back and forth by each of SLIDE_SHARES of the extent along each principal axis of the target, refined
+# on SLIDE_POINTS points; a pose fitting SLIDE_MARGIN better that passes the check in full makes the
+# pair ambiguous (_unless_slid). Two shares: a refined slide stops anywhere from beside the truth to
+# past a tenth of the extent, and a probe overshooting the truth settles beside it again.
 SLIDE_FITNESS = 0.75
-SLIDE_SHARE = 0.1
+SLIDE_SHARES = (0.05, 0.1)
 SLIDE_POINTS = 500
 SLIDE_MARGIN = 0.1
 RIVAL_FITNESS_MARGIN = 0.05  # an unverified answer fitting within this of a verified one also contradicts it
@@ -448,9 +450,12 @@ def _half_turns(
 
 
 def _unless_slid(prepared: _Prepared, answer: RegistrationResult, options: RegistrationOptions) -> RegistrationResult:
-    """The answer, or a pose beside it that fits clearly better and passes the check too (see
-    SLIDE_FITNESS), not verified: both pass, and where the scene repeats itself (shelves, a
-    corridor) the better fitting one may be the wrong one. Charged with the time the search took."""
+    """The answer, or, when it is verified and matches less than SLIDE_FITNESS of the source, a pose
+    beside it that fits clearly better and passes the check too, not verified: both pass, and where
+    the scene repeats itself (shelves, a corridor) the better fitting one may be the wrong one.
+    Charged with the time the search took."""
+    if not answer.verified or answer.fitness >= SLIDE_FITNESS:
+        return answer
     started = time.perf_counter()
     check = prepared.check
     small = AlignmentClouds(subset(check.source, SLIDE_POINTS), subset(check.target, SLIDE_POINTS), check.spacing)
@@ -460,27 +465,25 @@ def _unless_slid(prepared: _Prepared, answer: RegistrationResult, options: Regis
         return check.fitness(scored, rotation, translation, INLIER_SPACINGS)
 
     distances = refine_distances(check.spacing, prepared.normalisation.scale)
-    extent = float(np.linalg.norm(check.target.max(axis=0) - check.target.min(axis=0)))
-    axes = principal_axes(check.target)
     bar = (1.0 + SLIDE_MARGIN) * fit(answer.rotation, answer.translation)
     best, best_fitness = answer, None  # the check's fitness (a user's threshold may set answer.fitness's)
-    for axis in axes.T:
-        for sign in (1.0, -1.0):
-            rotation, translation = answer.rotation, answer.translation + sign * SLIDE_SHARE * extent * axis
-            for distance in distances:
-                rotation, translation, _ = small.refine(rotation, translation, distance)
-            if fit(rotation, translation) <= bar:
-                continue
-            candidate = _checked(prepared, rotation, translation, options.refine or RefineOptions())
-            if best_fitness is None:
-                best_fitness = check.fitness(check.source, answer.rotation, answer.translation, INLIER_SPACINGS)
-            fitness = candidate.verification.score.fitness
-            if candidate.verification.verified and fitness > (1.0 + SLIDE_MARGIN) * best_fitness:
-                best = _result(prepared, candidate, answer.stage, answer.model, options, dict(answer.timings_ms))
-                best_fitness = fitness
+    for translation in slides(answer.translation, check.target, SLIDE_SHARES):
+        rotation = answer.rotation
+        for distance in distances:
+            rotation, translation, _ = small.refine(rotation, translation, distance)
+        if fit(rotation, translation) <= bar:
+            continue
+        candidate = _checked(prepared, rotation, translation, options.refine or RefineOptions())
+        if best_fitness is None:
+            best_fitness = check.fitness(check.source, answer.rotation, answer.translation, INLIER_SPACINGS)
+        fitness = candidate.verification.score.fitness
+        if candidate.verification.verified and fitness > (1.0 + SLIDE_MARGIN) * best_fitness:
+            best = _result(prepared, candidate, answer.stage, answer.model, options, dict(answer.timings_ms))
+            best_fitness = fitness
     best.timings_ms["postprocess_ms"] += (time.perf_counter() - started) * 1000.0
     if best is answer:
         return answer
+    extent = float(np.linalg.norm(check.target.max(axis=0) - check.target.min(axis=0)))
     away = float(np.linalg.norm(best.translation - answer.translation)) / extent
     reason = f"ambiguous: a pose {away:.0%} of the extent away also passes the check (a repeating scene?)"
     return dataclasses.replace(best, verified=False, reason=reason)
@@ -527,9 +530,18 @@ async def register_clouds(
     count = (first.draft or first).network_points if options.method == "auto" else first.network_points
     base = await run_blocking(_prepare, source, target, count, options, settings, threads)
     answer = await _answer(source, target, base, options, settings, networks, run_blocking, threads)
-    if answer.verified and answer.fitness < SLIDE_FITNESS:  # it may lie beside the truth
-        return await run_blocking(_unless_slid, base, answer, options)
-    return answer
+    return await run_blocking(_unless_slid, base, answer, options)
+
+
+def verdicts(
+    source: np.ndarray, target: np.ndarray, poses: Sequence[tuple[np.ndarray, np.ndarray]], settings: Settings
+) -> list[RegistrationResult]:
+    """The verdict a request's answer gets, for each given pose (R, t) of `source` onto `target`:
+    the check, then the slide check. For calibrating them on pairs with known truth."""
+    options = RegistrationOptions()
+    prepared = _prepare(source, target, STARTS_POINTS, options, settings)
+    answers = (_result(prepared, _checked(prepared, *pose, None), "ifnet", "", options, dict(_FREE)) for pose in poses)
+    return [_unless_slid(prepared, answer, options) for answer in answers]
 
 
 async def _answer(

@@ -422,9 +422,9 @@ def test_on_evenly_spaced_shelves_the_right_answer_is_flagged_ambiguous():
     assert not judged.verified and "ambiguous" in judged.reason
 
 
-def test_every_path_looks_beside_a_verified_answer_that_matches_little(monkeypatch):
-    """register_clouds hands a verified answer matching less than SLIDE_FITNESS of the source to the
-    slide check, and no other."""
+def test_only_a_verified_answer_that_matches_little_is_looked_beside(monkeypatch):
+    """The slide check leaves an answer matching SLIDE_FITNESS of the source or more, and an unverified
+    one, as they are, without a look; every answer register_clouds gives passes through it."""
     import asyncio
 
     from conftest import pipeline_inputs
@@ -439,8 +439,11 @@ def test_every_path_looks_beside_a_verified_answer_that_matches_little(monkeypat
     slid, extent = slid_sample(prepared, options, rotation, translation)
     unverified = checked_answer(prepared, options, rotation, translation + np.array([0.0, 0.0, extent]))
     assert right.fitness >= registration.SLIDE_FITNESS > slid.fitness and slid.verified and not unverified.verified
-    looked_at = []
-    monkeypatch.setattr(registration, "_unless_slid", lambda prepared, answer, options: looked_at.append(answer))
+    for left in (right, unverified):
+        assert registration._unless_slid(prepared, left, options) is left
+    assert registration._unless_slid(prepared, slid, options) is not slid
+    handed = []
+    monkeypatch.setattr(registration, "_unless_slid", lambda prepared, answer, options: handed.append(answer))
     _, settings, _ = pipeline_inputs(None, None)
     for given in (right, slid, unverified):
 
@@ -449,4 +452,22 @@ def test_every_path_looks_beside_a_verified_answer_that_matches_little(monkeypat
 
         monkeypatch.setattr(registration, "_answer", answer)
         asyncio.run(registration.register_clouds(source, target, options, settings, [Network("object", 384, None)]))
-    assert looked_at == [slid]
+    assert handed == [right, slid, unverified]
+
+
+def test_verdicts_are_those_a_request_would_get():
+    """The calibration's entry: the check, then the slide check, on the caller's poses."""
+    from service import registration
+    from service.settings import Settings
+
+    source, target, truth = sample_pair(turned=False)
+    prepared, options = prepared_pair(source, target)
+    rotation, translation = from_matrix(truth)
+    slid, extent = slid_sample(prepared, options, rotation, translation)
+    far = (rotation, translation + np.array([0.0, 0.0, extent]))
+    right, flagged, unverified = registration.verdicts(
+        source, target, [(rotation, translation), (slid.rotation, slid.translation), far], Settings()
+    )
+    assert right.verified and not unverified.verified
+    assert not flagged.verified and flagged.reason.startswith("ambiguous")
+    assert np.linalg.norm(flagged.translation - translation) < 0.01 * extent
