@@ -163,21 +163,34 @@ def degeneracy(points: np.ndarray, relative_tolerance: float = 1e-4) -> str | No
     return None
 
 
+class FarthestPoints:
+    """Deterministic farthest-point sampling of one cloud that a larger count extends: the first k
+    points of a longer sample are the k-point sample, so a second count costs only what it adds."""
+
+    def __init__(self, points: np.ndarray, start: int = 0):
+        # Coordinates as contiguous rows and buffers reused every step: few numpy calls per step (their
+        # overhead dominates on small clouds). In float32 about the centre: half the memory traffic of
+        # float64 (twice as fast on large clouds), and map coordinates keep their precision.
+        self.columns = np.ascontiguousarray((points - points.mean(axis=0)).T, dtype=np.float32)  # [3, N]
+        self.chosen = [start]
+        self.distance = np.full(len(points), np.inf, dtype=np.float32)  # squared, to the nearest chosen
+        self.offsets, self.squared = np.empty_like(self.columns), np.empty_like(self.columns[0])
+
+    def first(self, count: int) -> np.ndarray:
+        """Indices of the first `count` points chosen."""
+        columns, chosen, distance = self.columns, self.chosen, self.distance
+        offsets, squared = self.offsets, self.squared
+        while len(chosen) < count:
+            np.square(np.subtract(columns, columns[:, chosen[-1], None], out=offsets), out=offsets)
+            np.add(np.add(offsets[0], offsets[1], out=squared), offsets[2], out=squared)
+            np.minimum(distance, squared, out=distance)
+            chosen.append(int(distance.argmax()))
+        return np.array(chosen[:count], dtype=np.int64)
+
+
 def farthest_point_sample(points: np.ndarray, count: int, start: int = 0) -> np.ndarray:
     """Indices of `count` points chosen by deterministic farthest-point sampling."""
-    # Coordinates as contiguous rows and buffers reused every step: few numpy calls per step (their
-    # overhead dominates on small clouds), with the same sums in the same order (same indices).
-    columns = np.ascontiguousarray(points.T)  # [3, N]
-    chosen = np.empty(count, dtype=np.int64)
-    chosen[0] = start
-    distance = np.full(len(points), np.inf)
-    offsets, squared = np.empty_like(columns), np.empty_like(columns[0])
-    for i in range(1, count):
-        np.square(np.subtract(columns, columns[:, chosen[i - 1], None], out=offsets), out=offsets)
-        np.add(np.add(offsets[0], offsets[1], out=squared), offsets[2], out=squared)
-        np.minimum(distance, squared, out=distance)
-        chosen[i] = distance.argmax()
-    return chosen
+    return FarthestPoints(points, start).first(count)
 
 
 def at_most(cloud: np.ndarray, count: int) -> np.ndarray:
@@ -186,19 +199,24 @@ def at_most(cloud: np.ndarray, count: int) -> np.ndarray:
 
 
 def resample_indices(
-    num_points: int, count: int, method: str, rng: np.random.Generator, points: np.ndarray
+    num_points: int,
+    count: int,
+    method: str,
+    rng: np.random.Generator,
+    points: np.ndarray,
+    farthest: FarthestPoints | None = None,
 ) -> np.ndarray:
     """Indices that bring a cloud of num_points to exactly count points.
 
-    Larger clouds are subsampled ("fps": farthest point, "random": seeded, without replacement);
-    smaller ones keep every point once and repeat randomly chosen ones to fill up. A cloud of
-    exactly count points is kept as it is: any sampling would only reorder it.
+    Larger clouds are subsampled ("fps": farthest point, extending `farthest` when given, "random":
+    seeded, without replacement); smaller ones keep every point once and repeat randomly chosen ones
+    to fill up. A cloud of exactly count points is kept as it is: any sampling would only reorder it.
     """
     if num_points == count:
         return np.arange(count)
     if num_points > count:
         if method == "fps":
-            return farthest_point_sample(points, count)
+            return (farthest or FarthestPoints(points)).first(count)
         return np.sort(rng.choice(num_points, size=count, replace=False))
     extra = rng.choice(num_points, size=count - num_points, replace=True)
     return np.concatenate([np.arange(num_points), extra])

@@ -38,6 +38,7 @@ from model.geometry import (
     INLIER_SPACINGS,
     REFINE_SPACINGS,
     AlignmentClouds,
+    FarthestPoints,
     Normalisation,
     Verification,
     apply_transform,
@@ -175,17 +176,28 @@ class RegistrationResult:
         return to_matrix(self.rotation, self.translation)
 
 
-def sample_indices(points: np.ndarray, count: int, sampling: Sampling, seed: int, fps_max_input: int) -> np.ndarray:
-    """Indices bringing one cloud to exactly `count` points, reproducible from (cloud, seed) alone.
+class CloudSampler:
+    """Brings one cloud to any point count, reproducible from (cloud, seed) alone.
 
     Farthest-point sampling of very large clouds first takes a seeded random subset of
-    fps_max_input points: the result stays deterministic and the cost bounded.
+    fps_max_input points: the result stays deterministic and the cost bounded. A larger count
+    extends the farthest points of a smaller one (its first points are the smaller sample).
     """
-    rng = np.random.default_rng(seed)  # a fresh generator per cloud: the other cloud does not matter
-    if sampling == "fps" and len(points) > fps_max_input:
-        subset = np.sort(rng.choice(len(points), size=fps_max_input, replace=False))
-        return subset[resample_indices(fps_max_input, count, "fps", rng, points[subset])]
-    return resample_indices(len(points), count, sampling, rng, points)
+
+    def __init__(self, points: np.ndarray, sampling: Sampling, seed: int, fps_max_input: int):
+        rng = np.random.default_rng(seed)  # a fresh generator per cloud: the other cloud does not matter
+        self.subset = None
+        if sampling == "fps" and len(points) > fps_max_input:
+            self.subset = np.sort(rng.choice(len(points), size=fps_max_input, replace=False))
+        self.points = points if self.subset is None else points[self.subset]
+        self.sampling, self.rng_state = sampling, rng.bit_generator.state
+        self.farthest = FarthestPoints(self.points) if sampling == "fps" else None
+
+    def indices(self, count: int) -> np.ndarray:
+        rng = np.random.default_rng()
+        rng.bit_generator.state = self.rng_state  # each count draws as if it came first
+        found = resample_indices(len(self.points), count, self.sampling, rng, self.points, self.farthest)
+        return found if self.subset is None else self.subset[found]
 
 
 @dataclass(frozen=True)
@@ -198,6 +210,7 @@ class _Prepared:
     init: np.ndarray  # 4x4
     points: CloudReports
     check: AlignmentClouds  # at most CHECK_MAX_POINTS of each cloud: what refinement and the check use
+    samplers: dict[str, CloudSampler]  # per cloud: another count extends this one's farthest points
     seconds: float
 
 
@@ -212,16 +225,17 @@ def _prepare(
 ) -> _Prepared:
     """The pair made ready for a network of `count` points, its check on `threads` (when its clouds
     are large enough to gain from them); `base`, the same pair made ready for another count, lends
-    its checked distinct points and its check's clouds."""
+    its checked distinct points, its samplers and its check's clouds."""
     started = time.perf_counter()
     clouds, sampled, reports = {}, {}, {}
+    samplers = {} if base is None else base.samplers
     for name, points in (("source", source), ("target", target)):
         if base is None:
             unique = check_cloud(points, name, settings.min_points, settings.max_cloud_points)
+            samplers[name] = CloudSampler(unique, options.sampling, options.seed, settings.fps_max_input_points)
         else:
             unique = getattr(base, name)
-        indices = sample_indices(unique, count, options.sampling, options.seed, settings.fps_max_input_points)
-        clouds[name], sampled[name] = unique, unique[indices]
+        clouds[name], sampled[name] = unique, unique[samplers[name].indices(count)]
         reports[name] = CloudReport(len(points), len(points) - len(unique), count, len(unique) < count)
     init = np.eye(4) if options.init is None else options.init
     source_sampled = apply_transform(sampled["source"], *from_matrix(init))
@@ -241,6 +255,7 @@ def _prepare(
         init=init,
         points=CloudReports(**reports),
         check=check,
+        samplers=samplers,
         seconds=time.perf_counter() - started,
     )
 

@@ -26,7 +26,7 @@ from model.geometry import (
     to_matrix,
 )
 from service.batcher import Prediction
-from service.registration import Network, RegistrationFailed, register_clouds, sample_indices
+from service.registration import CloudSampler, Network, RegistrationFailed, register_clouds
 from service.schemas import RefineOptions
 from service.validation import InvalidInput, as_points, as_rigid_transform
 
@@ -421,6 +421,10 @@ def test_farthest_point_sampling_picks_the_point_farthest_from_those_chosen():
         assert chosen[i] == np.argmax(nearest_chosen)
 
 
+def sample_indices(cloud, count, sampling, seed, fps_max_input):
+    return CloudSampler(cloud, sampling, seed, fps_max_input).indices(count)
+
+
 def test_sampling_is_reproducible_and_per_cloud(real_scans):
     cloud = real_scans["kitti_000008_fov"]
     for sampling in ("fps", "random"):
@@ -435,6 +439,19 @@ def test_sampling_is_reproducible_and_per_cloud(real_scans):
         np.testing.assert_array_equal(sample_indices(cloud[:256], 256, sampling, 5, 4096), np.arange(256))
     small = sample_indices(cloud[:100], 256, "fps", seed=0, fps_max_input=4096)
     assert len(small) == 256 and set(small.tolist()) == set(range(100))  # every point kept, some repeated
+
+
+def test_a_second_count_gets_what_it_would_get_first(real_scans):
+    """One sampler serves a request's point counts: extending farthest points, or drawing afresh."""
+    cloud = real_scans["kitti_000008_fov"]
+    for sampling, cap, small in (("fps", 4096, 128), ("fps", 100_000, 128), ("random", 4096, 128), ("fps", 4096, 8192)):
+        sampler = CloudSampler(cloud, sampling, 5, cap)
+        first = sampler.indices(small)
+        for count in (384, small):
+            np.testing.assert_array_equal(sampler.indices(count), sample_indices(cloud, count, sampling, 5, cap))
+        np.testing.assert_array_equal(sampler.indices(small), first)
+    farthest = CloudSampler(cloud, "fps", 5, 4096)
+    np.testing.assert_array_equal(farthest.indices(384)[:128], farthest.indices(128))
 
 
 def test_non_finite_model_output_is_reported(real_scans):
