@@ -68,8 +68,11 @@ CHECK_MAX_POINTS = 8_000
 # (ONNX Runtime's threads still spin after a model call and take a CPU from them).
 THREADED_CHECK_POINTS = 4_000
 REFINE_MAX_SECONDS = 10.0
-# The refinement's first, coarse pass, in normalised units (clouds of radius NETWORK_RADIUS).
+# The refinement's first, coarse pass, in normalised units (clouds of radius NETWORK_RADIUS), on at
+# most COARSE_POINTS per cloud: its wide correspondences make each iteration dear, and it only has to
+# bring the answer within reach of the fine pass on the check's clouds.
 COARSE_DISTANCE_NORMALISED = 0.05
+COARSE_POINTS = 3_000
 # Feature matching's voxel follows each cloud's point spacing at up to this many points: the
 # check's sparser subset would give it a voxel too coarse for some real scans (docs/training/scenes.md).
 FEATURE_SPACING_POINTS = 20_000
@@ -210,6 +213,7 @@ class _Prepared:
     init: np.ndarray  # 4x4
     points: CloudReports
     check: AlignmentClouds  # at most CHECK_MAX_POINTS of each cloud: what refinement and the check use
+    coarse: AlignmentClouds  # at most COARSE_POINTS of each of those: the refinement's coarse pass
     samplers: dict[str, CloudSampler]  # per cloud: another count extends this one's farthest points
     seconds: float
 
@@ -244,8 +248,13 @@ def _prepare(
         source_check, target_check = (subset(clouds[name], CHECK_MAX_POINTS) for name in ("source", "target"))
         threads = threads if min(len(source_check), len(target_check)) > THREADED_CHECK_POINTS else 1
         check = AlignmentClouds(source_check, target_check, threads=threads)
+        coarse = check
+        if min(len(source_check), len(target_check)) > 2 * COARSE_POINTS:  # else it saves too little
+            coarse = AlignmentClouds(
+                subset(source_check, COARSE_POINTS), subset(target_check, COARSE_POINTS), check.spacing
+            )
     else:
-        check = base.check
+        check, coarse = base.check, base.coarse
     return _Prepared(
         source=clouds["source"],
         target=clouds["target"],
@@ -255,6 +264,7 @@ def _prepare(
         init=init,
         points=CloudReports(**reports),
         check=check,
+        coarse=coarse,
         samplers=samplers,
         seconds=time.perf_counter() - started,
     )
@@ -292,15 +302,16 @@ def refine_distances(spacing: float, scale: float, max_distance: float | None = 
 
 def _checked(prepared: _Prepared, rotation: np.ndarray, translation: np.ndarray, refine_options) -> _Candidate:
     """Refine (when asked) and check one answer. Without a distance of the user's, the refinement
-    runs coarse to fine: first at a share of the clouds' size (to pull in a few degrees' error),
-    then at a few point spacings (to settle on the surfaces)."""
+    runs coarse to fine: first at a share of the clouds' size on fewer points (to pull in a few
+    degrees' error), then at a few point spacings (to settle on the surfaces)."""
     refinement = None
     if refine_options is not None:
         network_transform = to_matrix(rotation, translation)
         distances = refine_distances(prepared.check.spacing, prepared.normalisation.scale, refine_options.max_distance)
         iterations = 0
-        for distance in distances:
-            rotation, translation, steps = prepared.check.refine(
+        for stage, distance in enumerate(distances, start=1):
+            clouds = prepared.check if stage == len(distances) else prepared.coarse
+            rotation, translation, steps = clouds.refine(
                 rotation,
                 translation,
                 distance,

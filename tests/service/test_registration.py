@@ -23,6 +23,7 @@ from model.geometry import (
     farthest_point_sample,
     from_matrix,
     rotation_angle_deg,
+    subset,
     to_matrix,
 )
 from service.batcher import Prediction
@@ -390,8 +391,9 @@ def test_feature_matching_that_agrees_with_a_verified_answer_is_not_refined_agai
 
 @pytest.mark.parametrize("method", ["ifnet", "auto"])
 def test_a_pairs_clouds_are_made_ready_for_refinement_once(real_scans, monkeypatch, method):
-    """Coarse and fine refinement and the check (and under auto, feature matching's refinement
-    and check) share one set of normals and covariances per cloud: two estimates per request."""
+    """Fine refinement and the check (and under auto, feature matching's refinement and check)
+    share one set of normals and covariances per cloud, and every coarse pass another, on fewer
+    points: four estimates per request, the coarse pass's clouds being subsets of the check's."""
     import small_gicp
 
     from service import registration
@@ -409,7 +411,32 @@ def test_a_pairs_clouds_are_made_ready_for_refinement_once(real_scans, monkeypat
     result = register(source, target, 768, recording([], "model"), method=method, refine=RefineOptions())
     assert result.verified and result.refinement.iterations >= 1
     checked = min(len(source), registration.CHECK_MAX_POINTS)  # 17k points: a subset
-    assert estimates == [checked, checked]  # the target's, then the source's
+    coarse = registration.COARSE_POINTS
+    assert estimates == [checked, checked, coarse, coarse]  # the target's, then the source's
+
+
+def test_the_coarse_pass_refines_fewer_points_of_large_clouds(real_scans, monkeypatch):
+    """Past 2 x COARSE_POINTS per cloud the coarse pass runs on COARSE_POINTS of each, the fine pass
+    and the check on the check's clouds; smaller clouds run both passes on the check's."""
+    from model.geometry import AlignmentClouds
+    from service import registration
+
+    refined, refine = [], AlignmentClouds.refine
+
+    def recorded(clouds, *args, **kwargs):
+        refined.append(len(clouds.source))
+        return refine(clouds, *args, **kwargs)
+
+    monkeypatch.setattr(AlignmentClouds, "refine", recorded)
+    large = real_scans["kitti_000008_fov"]  # 17k points
+    for source in (large, subset(large, 2 * registration.COARSE_POINTS)):
+        refined.clear()
+        target = apply_transform(source, TRUE_ROTATION, TRUE_TRANSLATION)
+        result = register(source, target, 768, recording([], "model"), method="ifnet", refine=RefineOptions())
+        assert result.verified
+        checked = min(len(source), registration.CHECK_MAX_POINTS)
+        coarse = registration.COARSE_POINTS if len(source) > 2 * registration.COARSE_POINTS else checked
+        assert refined[:2] == [coarse, checked]
 
 
 def test_farthest_point_sampling_picks_the_point_farthest_from_those_chosen():
