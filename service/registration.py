@@ -12,10 +12,11 @@ the source as it lies and, failing that, turned by feature matching's guess; its
 refined, stands only when it passes the check and feature matching agrees with it (and where its
 two answers both pass and disagree, the pair is ambiguous and no model is asked; where it fails the
 check only because the clouds cannot pin the motion down and feature matching agrees, it stands
-unverified). Where the method allows and the answer fails the check, the other networks follow in
-turn, then the global path: feature matching (also a second opinion on a verified answer), then
-the first network's draft (or the network) from 24 rotated starts, which also judge a verified
-answer: a start that lands far from it and fits as well (a symmetric shape) contradicts it.
+unverified); otherwise feature matching's answer, refined, is checked before any model is asked.
+Where the method allows and the answer fails the check, the other networks follow in turn, then
+the global path: feature matching (also a second opinion on a verified answer), then the first
+network's draft (or the network) from 24 rotated starts, which also judge a verified answer: a
+start that lands far from it and fits as well (a symmetric shape) contradicts it.
 Whatever the path, a verified answer that matches little of the source is slid back and forth
 beside itself: a pose there that fits clearly better and passes the check too leaves the pair
 ambiguous (`_unless_slid`). `register_pairs` runs a request's pairs through it and the models'
@@ -600,6 +601,7 @@ async def _answer(
         return await run_blocking(_finish, prepared[count], prediction, network, options)
 
     if options.method != "global":
+        asked = networks if auto else networks[:1]
         if auto and first.draft is not None:
             # A draft's answer stands only where feature matching, an independent method, agrees; the
             # guess is needed on every path of `auto`, so it comes first.
@@ -614,12 +616,17 @@ async def _answer(
             if draft is not None:
                 return draft
             discarded += paid
-        for network in networks if auto else networks[:1]:
+            # Feature matching's answer before the models': they follow only where it fails the check.
+            if features_answer is None:
+                features_answer = await run_blocking(_finish_features, base, features, first.model, options)
+            if features_answer.verified:
+                asked = []
+        for network in asked:
             answers.append(await ask(network))
             if answers[-1].verified:
                 break
         answers += unconfirmed  # the draft's verified answers feature matching did not confirm: judged with the rest
-        if not answers[0].verified and options.method == "ifnet":
+        if options.method == "ifnet" and not answers[0].verified:
             return answers[0]
     # Feature matching: the global path's cheapest stage, and a second opinion on a verified answer.
     features = features or await run_blocking(_feature_guess, base)

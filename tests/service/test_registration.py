@@ -27,7 +27,7 @@ from model.geometry import (
     to_matrix,
 )
 from service.batcher import Prediction
-from service.registration import CloudSampler, Network, RegistrationFailed, register_clouds
+from service.registration import STARTS_POINTS, CloudSampler, Network, RegistrationFailed, register_clouds
 from service.schemas import RefineOptions
 from service.validation import InvalidInput, as_points, as_rigid_transform
 
@@ -164,9 +164,10 @@ def recording(asked: list, name: str, turn=None):
 def test_auto_asks_the_draft_first_and_keeps_its_answer_only_where_feature_matching_agrees(real_scans, monkeypatch):
     """A model with a draft: `auto` asks the draft (at its points, refining its answer even unasked)
     and stops there when feature matching's guess agrees; when it does not (a draft answer far from
-    the guess is not even refined), the model is asked as if there were no draft; the other models'
-    drafts are not asked. The 24 rotated starts, which judge a verified answer past the draft, ask
-    the first model's draft, under `global` too; `ifnet` asks the model alone."""
+    the guess is not even refined), the guess is refined and checked and, where it fails, the model
+    is asked as if there were no draft; the other models' drafts are not asked. The 24 rotated
+    starts, which judge a verified answer past the draft, ask the first model's draft, under
+    `global` too; `ifnet` asks the model alone."""
     from service import registration
 
     asked = []
@@ -198,8 +199,8 @@ def test_auto_asks_the_draft_first_and_keeps_its_answer_only_where_feature_match
     assert asked == [("draft", 384), ("model", 768), *starts]
     assert (unconfirmed.stage, unconfirmed.verified) == ("ifnet", True)
     # The draft's answer, more than DRAFT_REACH_DEG from the guess, was set aside unrefined: the
-    # model's answer and the guess were refined and checked; the starts all landed on the answer.
-    assert len(checked) == 2 and rotation_angle_deg(checked[1], np.eye(3)) == pytest.approx(0.0, abs=1e-9)
+    # guess and then the model's answer were refined and checked; the starts all landed on the answer.
+    assert len(checked) == 2 and rotation_angle_deg(checked[0], np.eye(3)) == pytest.approx(0.0, abs=1e-9)
     assert unconfirmed.timings_ms["inference_ms"] == 26.0  # the discarded draft's call and the starts' were paid for
     other = run("auto", target, first_turned=True)  # only the first model's draft is asked
     assert asked == [("draft", 384), ("model", 768), ("indoor", 768), *starts]
@@ -208,6 +209,23 @@ def test_auto_asks_the_draft_first_and_keeps_its_answer_only_where_feature_match
     assert asked == starts and searched.stage == "multistart"
     network = run("ifnet", target)
     assert asked == [("model", 768)] and (network.stage, network.refinement) == ("ifnet", None)
+
+
+def test_where_the_draft_fails_a_verified_guess_spares_the_models(real_scans):
+    """`auto` past an unconfirmed draft: feature matching's answer, refined and verified, is judged
+    by the rotated starts, and no model is asked."""
+    asked = []
+    source = real_scans["kitti_000008_fov"]
+    target = apply_transform(source, TRUE_ROTATION, TRUE_TRANSLATION)
+    options, settings, _ = pipeline_inputs(None, None, method="auto")
+    turn = euler_to_matrix([90.0, 0.0, 0.0])  # every draft answer far from the (right) guess
+    draft = Network("object", 384, recording(asked, "draft", turn), "draft")
+    networks = [Network("object", 768, recording(asked, "model"), draft=draft)]
+    result = asyncio.run(register_clouds(source, target, options, settings, networks))
+    starts = [("draft", STARTS_POINTS)] * 24
+    assert asked == [("draft", 384), ("draft", 384), *starts]  # as it lies, at the guess's turn, the starts
+    assert (result.stage, result.verified) == ("features", True)
+    assert rotation_angle_deg(result.rotation, TRUE_ROTATION) < 0.01
 
 
 def test_a_verified_draft_answer_the_guess_is_too_coarse_to_confirm_is_confirmed_by_the_guess_refined(

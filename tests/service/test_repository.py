@@ -260,7 +260,14 @@ async def test_auto_asks_a_models_draft_and_refines_its_answer(serve, repository
     assert metrics[("ifnet_answers_total", ("model", "object"), ("stage", "draft"), ("verified", "true"))] == 1
 
 
-async def test_when_the_drafts_answer_fails_the_check_auto_asks_the_model(serve, repository, tiny_model):
+async def test_when_the_drafts_answer_and_feature_matchings_fail_auto_asks_the_model(
+    serve, repository, tiny_model, monkeypatch
+):
+    from model.geometry import euler_to_matrix
+    from service import registration
+
+    wrong = euler_to_matrix([120.0, 0.0, 0.0])  # refined, the guess fails the check
+    monkeypatch.setattr(registration, "feature_match", lambda *args: (wrong, np.zeros(3)))
     (repository / "drafts").mkdir()
     draft_file = with_points(shutil.copy(tiny_model, repository / "drafts" / "object.onnx"), INDOOR_POINTS)
     engine = OnnxEngine(repository / "object.onnx", threads=1)
