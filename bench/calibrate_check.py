@@ -36,6 +36,7 @@ from model.geometry import (  # noqa: E402
     MIN_INLIERS,
     AlignmentClouds,
     apply_transform,
+    extent,
     from_matrix,
     point_spacing,
     refine,
@@ -106,7 +107,7 @@ def candidates(
     """(kind, R, t, seconds) answers to score: truth + noise, network, network refined, perturbed."""
     source, target = pair.source, pair.target
     truth = to_matrix(pair.rotation, pair.translation)
-    extent = float(np.linalg.norm(target.max(axis=0) - target.min(axis=0)))
+    size = extent(target)
     centre = apply_transform(source, pair.rotation, pair.translation).mean(axis=0)
     radius = np.linalg.norm(source - source.mean(axis=0), axis=1).max()
     # The truth within what a converged refinement reaches: points move at most ~half a spacing.
@@ -127,7 +128,7 @@ def candidates(
         angle = float(np.exp(rng.uniform(np.log(2.0), np.log(90.0))))
         out.append(("rotated", *from_matrix(about_point(axis_angle(random_axis(rng), angle), centre) @ truth), 0.0))
     offset = truth.copy()
-    offset[:3, 3] += random_axis(rng) * rng.uniform(1.25, 10.0) * harness.RIGHT_TRANSLATION_SHARE * extent
+    offset[:3, 3] += random_axis(rng) * rng.uniform(1.25, 10.0) * harness.RIGHT_TRANSLATION_SHARE * size
     out.append(("shifted", *from_matrix(offset), 0.0))
     out += slid_and_refined(pair, normalisation.scale, spacing)
     return out

@@ -25,6 +25,7 @@ from scipy.spatial import cKDTree
 from model.artifacts import network_points
 from model.geometry import (
     Normalisation,
+    extent,
     from_matrix,
     nearest_rotation,
     registration_errors,
@@ -182,7 +183,7 @@ class Pair:
 
     @property
     def extent(self) -> float:
-        return float(np.linalg.norm(self.source.max(axis=0) - self.source.min(axis=0)))
+        return extent(self.source)  # model.geometry.extent
 
 
 def uniform_rotation(rng: np.random.Generator) -> np.ndarray:
@@ -248,9 +249,8 @@ def scan_pair(spec: str, seed: int = 0, keep: float = 0.7, max_angle_deg: float 
     cross = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
     angle = np.radians(rng.uniform(0.0, max_angle_deg))
     rotation = np.eye(3) + np.sin(angle) * cross + (1 - np.cos(angle)) * cross @ cross
-    extent = np.linalg.norm(points.max(axis=0) - points.min(axis=0))
     shift = rng.normal(size=3)
-    translation = shift / np.linalg.norm(shift) * rng.uniform(0.0, 0.1 * extent)
+    translation = shift / np.linalg.norm(shift) * rng.uniform(0.0, 0.1 * extent(points))
     return Pair(spec, source, view @ rotation.T + translation, rotation, translation, scan_voxel(archive, name))
 
 

@@ -260,11 +260,11 @@ class Normalisation:
     def __init__(self, source: np.ndarray, target: np.ndarray, radius: float = NETWORK_RADIUS):
         self.source_centre = source.mean(axis=0)
         self.target_centre = target.mean(axis=0)
-        extent = max(
+        furthest = max(
             np.linalg.norm(source - self.source_centre, axis=1).max(),
             np.linalg.norm(target - self.target_centre, axis=1).max(),
         )
-        self.scale = radius / extent if extent > 0 else 1.0
+        self.scale = radius / furthest if furthest > 0 else 1.0
 
     def source(self, points: np.ndarray) -> np.ndarray:
         return (points - self.source_centre) * self.scale
@@ -292,12 +292,16 @@ def principal_axes(points: np.ndarray) -> np.ndarray:
     return np.linalg.eigh(np.cov(points.T))[1]
 
 
+def extent(points: np.ndarray) -> float:
+    """The cloud's size: the diagonal of its bounding box."""
+    return float(np.linalg.norm(points.max(axis=0) - points.min(axis=0)))
+
+
 def slides(translation: np.ndarray, target: np.ndarray, shares: Sequence[float]) -> list[np.ndarray]:
-    """`translation` shifted by each share of the target's extent (bounding-box diagonal), both ways
-    along each principal axis of the target: where an answer slid beside the truth would lie."""
-    extent = float(np.linalg.norm(target.max(axis=0) - target.min(axis=0)))
-    axes = principal_axes(target).T
-    return [translation + sign * share * extent * axis for share in shares for axis in axes for sign in (1.0, -1.0)]
+    """`translation` shifted by each share of the target's extent, both ways along each principal
+    axis of the target: where an answer slid beside the truth would lie."""
+    size, axes = extent(target), principal_axes(target).T
+    return [translation + sign * share * size * axis for share in shares for axis in axes for sign in (1.0, -1.0)]
 
 
 def subset(points: np.ndarray, count: int) -> np.ndarray:

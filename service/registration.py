@@ -44,6 +44,7 @@ from model.geometry import (
     Verification,
     apply_transform,
     at_most,
+    extent,
     feature_match,
     fitness_and_rmse,
     from_matrix,
@@ -510,8 +511,7 @@ def _unless_slid(prepared: _Prepared, answer: RegistrationResult, options: Regis
     best.timings_ms["postprocess_ms"] += (time.perf_counter() - started) * 1000.0
     if best is answer:
         return answer
-    extent = float(np.linalg.norm(check.target.max(axis=0) - check.target.min(axis=0)))
-    away = float(np.linalg.norm(best.translation - answer.translation)) / extent
+    away = float(np.linalg.norm(best.translation - answer.translation)) / extent(check.target)
     reason = f"ambiguous: a pose {away:.0%} of the extent away also passes the check (a repeating scene?)"
     return dataclasses.replace(best, verified=False, reason=reason)
 

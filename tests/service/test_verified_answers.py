@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from model.geometry import apply_transform, euler_to_matrix, from_matrix, principal_axes, rotation_angle_deg
+from model.geometry import apply_transform, euler_to_matrix, extent, from_matrix, principal_axes, rotation_angle_deg
 from service.formats import read_cloud_file
 from service.settings import Settings
 
@@ -377,9 +377,9 @@ def slid_sample(prepared, options, rotation, translation):
     """The sample pair's truth slid by a tenth of the extent along the target's longest axis, refined
     and checked; and the extent."""
     cloud = prepared.check.target
-    extent = float(np.linalg.norm(cloud.max(axis=0) - cloud.min(axis=0)))
+    size = extent(cloud)
     longest = principal_axes(cloud)[:, -1]
-    return checked_answer(prepared, options, rotation, translation + 0.1 * extent * longest), extent
+    return checked_answer(prepared, options, rotation, translation + 0.1 * size * longest), size
 
 
 def test_a_right_answer_with_no_better_pose_beside_it_stays_verified():
