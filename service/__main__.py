@@ -5,9 +5,12 @@ below override them.
 """
 
 import argparse
+import contextlib
+import logging
 import math
 import os
 import shutil
+import socket
 import sys
 import tempfile
 
@@ -67,8 +70,34 @@ def main(argv: list[str] | None = None) -> int:
     from service.app import create_app
     from service.protocol import service_protocol
 
-    uvicorn.run(create_app(settings, engines=engines), http=service_protocol(settings), **server_options(settings))
-    return 0
+    app = create_app(settings, engines=engines)
+    config = uvicorn.Config(app, http=service_protocol(settings), **server_options(settings))
+    sockets = listen(settings)
+    if sockets is None:
+        return 1
+    server = uvicorn.Server(config)
+    with contextlib.suppress(KeyboardInterrupt):  # uvicorn raises the signal it caught again once it has stopped
+        server.run(sockets=sockets)
+    return 0 if server.started else 1
+
+
+def listen(settings: Settings) -> list[socket.socket] | None:
+    """A socket per worker on the service's port (service.supervisor), or None having said why not."""
+    from service.supervisor import listening_sockets
+
+    try:
+        sockets = listening_sockets(settings.host, settings.port, settings.workers)
+    except OSError as error:
+        print(
+            f"ifnet-serve: cannot start: cannot listen on {settings.host}:{settings.port} ({error.strerror}): "
+            "stop what holds that port or choose another (--port, IFNET_PORT)",
+            file=sys.stderr,
+        )
+        return None
+    host, port = sockets[0].getsockname()[:2]
+    url = f"http://[{host}]:{port}" if ":" in host else f"http://{host}:{port}"
+    logging.getLogger("service").info("listening on %s with %d worker(s) (Ctrl+C stops)", url, len(sockets))
+    return sockets
 
 
 def server_options(settings: Settings) -> dict:
@@ -85,15 +114,18 @@ def server_options(settings: Settings) -> dict:
 
 
 def serve_workers(settings: Settings, overrides: dict) -> int:
-    """`settings.workers` processes on one socket under uvicorn's supervisor, which forwards SIGTERM
-    to each (each drains its requests) and stops them all if one fails to start (a bad model file:
-    the worker prints which and why). Exits 1 then."""
+    """`settings.workers` processes on one port, each on a socket of its own, under uvicorn's
+    supervisor (service.supervisor), which forwards SIGTERM to each (each drains its requests) and
+    stops them all if one fails to start (a bad model file: the worker prints which and why). Exits 1 then."""
     import uvicorn
     from uvicorn.config import STARTUP_FAILURE
-    from uvicorn.supervisors import Multiprocess
 
     from service.metrics import WORKERS_FOLDER_VARIABLE
+    from service.supervisor import Supervisor
 
+    sockets = listen(settings)
+    if sockets is None:
+        return 1
     # The workers are fresh interpreters: they read the flags from the environment, as the settings.
     os.environ.update({f"IFNET_{name.upper()}": str(value) for name, value in overrides.items()})
     metrics = tempfile.mkdtemp(prefix="ifnet-metrics-")
@@ -106,7 +138,7 @@ def serve_workers(settings: Settings, overrides: dict) -> int:
             workers=settings.workers,
             **server_options(settings),
         )
-        supervisor = Multiprocess(config, sockets=[config.bind_socket()])
+        supervisor = Supervisor(config, sockets)
         supervisor.run()
     finally:
         shutil.rmtree(metrics, ignore_errors=True)

@@ -1,10 +1,12 @@
 """The real thing: `python -m service` under uvicorn on a free loopback port, the command-line
 client against it, graceful shutdown on SIGTERM, and a clear failure without a model."""
 
+import http.client
 import json
 import os
 import re
 import signal
+import socket
 import subprocess
 import sys
 import time
@@ -207,6 +209,95 @@ def test_workers_share_the_port_and_metrics_add_them_up(tmp_path, tiny_model):
     assert [metric_total(s, "ifnet_http_requests_total", route="/metrics") for s in scrapes] == [0, 1, 2, 3, 4, 5]
     assert exit_code == 0 and not metrics.exists()
     assert log.read_text().count("batchers drained") == 2  # each worker drained its own
+
+
+def burst(url: str, count: int) -> list[int]:
+    """`count` connections opened together, then one GET /health on each: their status codes."""
+    port = int(url.rsplit(":", 1)[1])
+    connections = [http.client.HTTPConnection("127.0.0.1", port, timeout=120) for _ in range(count)]
+    for connection in connections:
+        connection.connect()
+    statuses = []
+    for connection in connections:
+        connection.request("GET", "/health")
+        response = connection.getresponse()
+        response.read()
+        statuses.append(response.status)
+        connection.close()
+    return statuses
+
+
+def health_answers_per_worker(metrics: Path) -> dict[int, float]:
+    """Each worker's count of /health answers, from its own counter file in the metrics folder."""
+    from prometheus_client.mmap_dict import MmapedDict
+
+    answers = {}
+    for path in metrics.glob("counter_*.db"):
+        samples = [(json.loads(key), value) for key, value, *_ in MmapedDict.read_all_values_from_file(str(path))]
+        answers[int(path.stem.rsplit("_", 1)[1])] = sum(
+            value
+            for (_, name, labels, *_), value in samples
+            if name == "ifnet_http_requests_total" and labels["route"] == "/health"
+        )
+    return answers
+
+
+def worker_pids(supervisor: int) -> set[int]:
+    children = Path(f"/proc/{supervisor}/task/{supervisor}/children").read_text().split()
+    return {int(pid) for pid in children if "spawn_main" in Path(f"/proc/{pid}/cmdline").read_text()}
+
+
+def await_listeners(url: str, count: int) -> None:
+    """Until `count` sockets listen on the url's port: /ready answers as soon as one worker does."""
+    port = f":{int(url.rsplit(':', 1)[1]):04X}"
+    for _ in range(600):
+        rows = [line.split() for line in Path("/proc/net/tcp").read_text().splitlines()[1:]]
+        if sum(local.endswith(port) and state == "0A" for _, local, _, state, *_ in rows) >= count:  # 0A: LISTEN
+            return
+        time.sleep(0.1)
+    raise AssertionError(f"fewer than {count} sockets listen on {url}")
+
+
+def test_a_burst_of_connections_is_dealt_out_to_both_workers(tmp_path, tiny_model):
+    # Each worker listens on a socket of its own: on one shared socket, the first worker to wake
+    # accepted nearly all of a burst and the other idled.
+    with service_process(tmp_path, tiny_model, workers="2", env={"TMPDIR": str(tmp_path)}) as (process, url, log):
+        (metrics,) = tmp_path.glob("ifnet-metrics-*")
+        await_listeners(url, 2)
+        statuses = burst(url, 32)
+        answers = health_answers_per_worker(metrics)
+    assert statuses == [200] * 32
+    assert len(answers) == 2 and min(answers.values()) >= 6, answers  # by chance: 1 run in 10,000
+
+
+def test_a_worker_that_dies_is_replaced_on_its_socket(tmp_path, tiny_model):
+    with service_process(tmp_path, tiny_model, workers="2", env={"TMPDIR": str(tmp_path)}) as (process, url, log):
+        (metrics,) = tmp_path.glob("ifnet-metrics-*")
+        await_listeners(url, 2)
+        first = worker_pids(process.pid)
+        os.kill(min(first), signal.SIGKILL)
+        # The connections its socket takes meanwhile wait there for the replacement.
+        statuses = burst(url, 32)
+        (replacement,) = worker_pids(process.pid) - first
+        answers = health_answers_per_worker(metrics)
+    assert statuses == [200] * 32
+    assert answers.get(replacement, 0) >= 1, answers
+    assert f"Worker [{min(first)}] died; starting another on its socket." in log.read_text()
+
+
+@pytest.mark.parametrize("workers", ["1", "2"])
+def test_a_port_in_use_fails_the_start_clearly(tmp_path, tiny_model, workers):
+    # Held as another service's worker holds it (SO_REUSEPORT), which must not make it shareable.
+    with socket.socket() as holder:
+        holder.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEPORT, 1)
+        holder.bind(("127.0.0.1", 0))
+        holder.listen()
+        port = holder.getsockname()[1]
+        env = {**os.environ, "PYTHONPATH": str(REPO)}
+        command = [sys.executable, "-m", "service", "--model-path", str(tiny_model), "--port", str(port)]
+        result = subprocess.run([*command, "--workers", workers], capture_output=True, text=True, env=env, timeout=120)
+    assert result.returncode == 1
+    assert f"cannot listen on 127.0.0.1:{port} (Address already in use): stop what holds that port" in result.stderr
 
 
 @pytest.mark.parametrize("value", ["0", "lots"])
