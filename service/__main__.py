@@ -68,14 +68,14 @@ def main(argv: list[str] | None = None) -> int:
     import uvicorn
 
     from service.app import create_app
-    from service.protocol import service_protocol
+    from service.protocol import ServiceServer, service_protocol
 
     app = create_app(settings, engines=engines)
     config = uvicorn.Config(app, http=service_protocol(settings), **server_options(settings))
     sockets = listen(settings)
     if sockets is None:
         return 1
-    server = uvicorn.Server(config)
+    server = ServiceServer(config)
     with contextlib.suppress(KeyboardInterrupt):  # uvicorn raises the signal it caught again once it has stopped
         server.run(sockets=sockets)
     return 0 if server.started else 1

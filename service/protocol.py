@@ -1,4 +1,4 @@
-"""uvicorn's HTTP/1.1 protocol (h11) with three guards for the service's connections.
+"""uvicorn's HTTP/1.1 protocol (h11) and server with four guards for the service's connections.
 
 Head deadline: uvicorn bounds only the idle time between requests (its keep-alive timeout, reset
 by every byte received), so a client that connects and sends nothing, or trickles a request's
@@ -24,7 +24,12 @@ answer. Here the connection first shuts its sending
 side and reads and drops up to `max_drain_bytes` more for at most `drain_timeout_s`, as nginx's
 lingering close does, so that the client reads the answer.
 
-The subclass reaches into uvicorn's H11Protocol and h11's connection state, which neither
+Shutdown (`ServiceServer`): uvicorn asks the connections open when its graceful shutdown starts to
+close once their answer is out. A connection accepted just before, whose protocol starts just
+after, was never asked: it kept serving its client until the graceful timeout, whose cancelled
+request ended in a 500. Here every connection that opens during the shutdown is asked too.
+
+The subclasses reach into uvicorn's H11Protocol and h11's connection state, which neither
 promises to keep: pyproject.toml pins both to TESTED_VERSIONS, and tests/service/test_security.py
 fails on any other installed version. To upgrade, widen both together once the protocol tests pass.
 """
@@ -34,6 +39,7 @@ import logging
 
 import h11
 from uvicorn.protocols.http.h11_impl import H11Protocol
+from uvicorn.server import Server
 
 from service.settings import Settings
 
@@ -169,3 +175,22 @@ def service_protocol(settings: Settings) -> type[ServiceProtocol]:
         "max_drain_bytes": settings.max_body_bytes,
     }
     return type("ServiceProtocol", (ServiceProtocol,), limits)
+
+
+class ServiceServer(Server):
+    """uvicorn's server, whose graceful shutdown also asks connections that open meanwhile to close."""
+
+    async def shutdown(self, sockets=None) -> None:
+        asked = set(self.server_state.connections)  # uvicorn asks these, its listeners closed first
+        latecomers = asyncio.create_task(self._ask_latecomers(asked))
+        try:
+            await super().shutdown(sockets)
+        finally:
+            latecomers.cancel()
+
+    async def _ask_latecomers(self, asked: set) -> None:
+        while True:
+            await asyncio.sleep(0.05)
+            for connection in set(self.server_state.connections) - asked:
+                asked.add(connection)
+                connection.shutdown()

@@ -13,6 +13,8 @@ import socket
 from uvicorn.config import STARTUP_FAILURE
 from uvicorn.supervisors.multiprocess import Multiprocess, Process
 
+from service.protocol import ServiceServer
+
 logger = logging.getLogger("uvicorn.error")
 
 
@@ -52,12 +54,20 @@ def listening_sockets(host: str, port: int, count: int) -> list[socket.socket]:
     return sockets
 
 
+class _Worker(Process):
+    @property
+    def server(self) -> ServiceServer:
+        if self._server is None:
+            self._server = ServiceServer(config=self.config)
+        return self._server
+
+
 class Supervisor(Multiprocess):
     """uvicorn's supervisor (signals, health pings, drain on SIGTERM, stop on a failed start) with
     worker k always on `sockets[k]`, a replacement included. The number of workers is fixed."""
 
     def worker(self, slot: int) -> Process:
-        process = Process(self.config, [self.sockets[slot]])
+        process = _Worker(self.config, [self.sockets[slot]])
         process.start()
         return process
 

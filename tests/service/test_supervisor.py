@@ -1,8 +1,12 @@
-"""The sockets of several workers (service.supervisor), without starting any worker."""
+"""How the service's processes listen and stop: the workers' sockets (service.supervisor) and the
+server's graceful shutdown (service.protocol.ServiceServer), without starting a service."""
 
 import asyncio
 import socket
 
+import uvicorn
+
+from service.protocol import ServiceServer
 from service.supervisor import listening_sockets
 
 
@@ -36,3 +40,35 @@ def test_each_worker_gets_a_socket_on_one_port_whose_connections_send_at_once():
     finally:
         for sock in sockets:
             sock.close()
+
+
+def test_a_connection_that_opens_during_the_shutdown_is_asked_to_close():
+    # Accepted just before the listeners closed, its protocol started after uvicorn asked the open
+    # connections to close: it served its client until the graceful timeout cancelled its request.
+    server = ServiceServer(uvicorn.Config(app=None, timeout_graceful_shutdown=5))
+    server.servers = []
+
+    class Lifespan:
+        async def shutdown(self):
+            pass
+
+    class Connection:
+        asked = False
+
+        def shutdown(self):
+            self.asked = True
+            server.server_state.connections.discard(self)  # closes once its answer is out
+
+    server.lifespan = Lifespan()
+    latecomer = Connection()
+
+    async def shut_down_as_a_connection_opens() -> float:
+        started = asyncio.get_running_loop().time()
+        shutdown = asyncio.create_task(server.shutdown())
+        await asyncio.sleep(0.02)
+        server.server_state.connections.add(latecomer)
+        await shutdown
+        return asyncio.get_running_loop().time() - started
+
+    seconds = asyncio.run(shut_down_as_a_connection_opens())
+    assert latecomer.asked and seconds < 2  # not held until the graceful timeout (5 s)
