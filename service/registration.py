@@ -103,10 +103,10 @@ NETWORK_REACH_DEG = 45.0
 # the surfaces where part of the clouds still overlaps (refined there, the check passes it): it is slid
 # back and forth by each of SLIDE_SHARES of the extent along each principal axis of the target, refined
 # on SLIDE_POINTS points; a pose fitting SLIDE_MARGIN better that passes the check in full makes the
-# pair ambiguous (_unless_slid). Two shares: a refined slide stops anywhere from beside the truth to
-# past a tenth of the extent, and a probe overshooting the truth settles beside it again.
-SLIDE_FITNESS = 0.75
-SLIDE_SHARES = (0.05, 0.1)
+# pair ambiguous (_unless_slid). Three shares: a refined slide stops anywhere from beside the truth to
+# a fifth of the extent, and a probe overshooting the truth settles beside it again.
+SLIDE_FITNESS = 0.85
+SLIDE_SHARES = (0.05, 0.1, 0.2)
 SLIDE_POINTS = 500
 SLIDE_MARGIN = 0.1
 RIVAL_FITNESS_MARGIN = 0.05  # an unverified answer fitting within this of a verified one also contradicts it
