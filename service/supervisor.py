@@ -1,4 +1,5 @@
-"""The parent process when `workers` > 1: uvicorn's supervisor, each worker on a socket of its own.
+"""How the service listens: the port's sockets, one per worker, and, when `workers` > 1, uvicorn's
+supervisor with each worker on a socket of its own.
 
 On one shared listening socket, whichever worker woke first accepted a whole burst of new
 connections and served them alone while the others idled. Here every worker listens on its own
@@ -55,6 +56,8 @@ def listening_sockets(host: str, port: int, count: int) -> list[socket.socket]:
 
 
 class _Worker(Process):
+    """A worker process of uvicorn's supervisor, served by ServiceServer."""
+
     @property
     def server(self) -> ServiceServer:
         if self._server is None:

@@ -270,7 +270,7 @@ def test_a_burst_of_connections_is_dealt_out_to_both_workers(tmp_path, tiny_mode
     assert len(answers) == 2 and min(answers.values()) >= 6, answers  # by chance: 1 run in 10,000
 
 
-def test_a_worker_that_dies_is_replaced_on_its_socket(tmp_path, tiny_model):
+def test_a_dead_worker_is_replaced_on_its_socket_and_sighup_is_ignored(tmp_path, tiny_model):
     with service_process(tmp_path, tiny_model, workers="2", env={"TMPDIR": str(tmp_path)}) as (process, url, log):
         (metrics,) = tmp_path.glob("ifnet-metrics-*")
         await_listeners(url, 2)
@@ -280,9 +280,16 @@ def test_a_worker_that_dies_is_replaced_on_its_socket(tmp_path, tiny_model):
         statuses = burst(url, 32)
         (replacement,) = worker_pids(process.pid) - first
         answers = health_answers_per_worker(metrics)
-    assert statuses == [200] * 32
+        process.send_signal(signal.SIGHUP)  # uvicorn's restart would hand sockets out anew: ignored
+        time.sleep(1)
+        after = burst(url, 4)
+        workers = worker_pids(process.pid)
+    assert statuses == [200] * 32 and after == [200] * 4
     assert answers.get(replacement, 0) >= 1, answers
-    assert f"Worker [{min(first)}] died; starting another on its socket." in log.read_text()
+    assert workers == (first - {min(first)}) | {replacement}
+    text = log.read_text()
+    assert f"Worker [{min(first)}] died; starting another on its socket." in text
+    assert "Ignored SIGHUP: restart the service to change its workers." in text
 
 
 @pytest.mark.parametrize("workers", ["1", "2"])
