@@ -29,7 +29,7 @@ close once their answer is out. A connection accepted just before, whose protoco
 after, was never asked: it kept serving its client until the graceful timeout, whose cancelled
 request ended in a 500. Here every connection that opens during the shutdown is asked too.
 
-The subclasses reach into uvicorn's H11Protocol and h11's connection state, which neither
+The subclasses reach into uvicorn's H11Protocol and Server and h11's connection state, which neither
 promises to keep: pyproject.toml pins both to TESTED_VERSIONS, and tests/service/test_security.py
 fails on any other installed version. To upgrade, widen both together once the protocol tests pass.
 """

@@ -4,7 +4,8 @@ supervisor with each worker on a socket of its own.
 On one shared listening socket, whichever worker woke first accepted a whole burst of new
 connections and served them alone while the others idled. Here every worker listens on its own
 socket, all bound to the port with SO_REUSEPORT, and the kernel deals new connections out among
-them by a hash of the client's address and port.
+them by a hash of the client's address and port. The supervisor reaches into uvicorn's
+Multiprocess and Process, pinned with the protocol (service.protocol.TESTED_VERSIONS).
 """
 
 import logging
