@@ -297,11 +297,21 @@ def extent(points: np.ndarray) -> float:
     return float(np.linalg.norm(points.max(axis=0) - points.min(axis=0)))
 
 
-def slides(translation: np.ndarray, target: np.ndarray, shares: Sequence[float]) -> list[np.ndarray]:
+def slides(
+    translation: np.ndarray, target: np.ndarray, shares: Sequence[float], diagonal_shares: Sequence[float] = ()
+) -> list[np.ndarray]:
     """`translation` shifted by each share of the target's extent, both ways along each principal
-    axis of the target: where an answer slid beside the truth would lie."""
+    axis of the target, and by each diagonal share along the four diagonals between each two
+    axes: where an answer slid beside the truth would lie."""
     size, axes = extent(target), principal_axes(target).T
-    return [translation + sign * share * size * axis for share in shares for axis in axes for sign in (1.0, -1.0)]
+    diagonals = [
+        (first * axes[a] + second * axes[b]) / np.sqrt(2.0)
+        for a, b in ((0, 1), (0, 2), (1, 2))
+        for first in (1.0, -1.0)
+        for second in (1.0, -1.0)
+    ]
+    along = [sign * share * axis for share in shares for axis in axes for sign in (1.0, -1.0)]
+    return [translation + size * step for step in along + [share * d for share in diagonal_shares for d in diagonals]]
 
 
 def subset(points: np.ndarray, count: int) -> np.ndarray:

@@ -101,12 +101,14 @@ DRAFT_REACH_DEG = 30.0
 NETWORK_REACH_DEG = 45.0
 # A verified answer matching less than SLIDE_FITNESS of the source may lie beside the truth, slid along
 # the surfaces where part of the clouds still overlaps (refined there, the check passes it): it is slid
-# back and forth by each of SLIDE_SHARES of the extent along each principal axis of the target, refined
-# on SLIDE_POINTS points; a pose fitting SLIDE_MARGIN better that passes the check in full makes the
-# pair ambiguous (_unless_slid). Three shares: a refined slide stops anywhere from beside the truth to
-# a fifth of the extent, and a probe overshooting the truth settles beside it again.
+# back and forth by each of SLIDE_SHARES of the extent along each principal axis of the target and by
+# each of SLIDE_DIAGONAL_SHARES between two axes, refined on SLIDE_POINTS points; a pose fitting
+# SLIDE_MARGIN better that passes the check in full makes the pair ambiguous (_unless_slid). Three
+# shares: a refined slide stops anywhere from beside the truth to a fifth of the extent, and a probe
+# overshooting the truth settles beside it again.
 SLIDE_FITNESS = 0.85
 SLIDE_SHARES = (0.05, 0.1, 0.2)
+SLIDE_DIAGONAL_SHARES = (0.05, 0.1)  # where no slide along one axis refines into the truth
 SLIDE_POINTS = 500
 SLIDE_MARGIN = 0.1
 RIVAL_FITNESS_MARGIN = 0.05  # an unverified answer fitting within this of a verified one also contradicts it
@@ -495,7 +497,7 @@ def _unless_slid(prepared: _Prepared, answer: RegistrationResult, options: Regis
     distances = refine_distances(check.spacing, prepared.normalisation.scale)
     bar = (1.0 + SLIDE_MARGIN) * fit(answer.rotation, answer.translation)
     best, best_fitness = answer, None  # the check's fitness (a user's threshold may set answer.fitness's)
-    for translation in slides(answer.translation, check.target, SLIDE_SHARES):
+    for translation in slides(answer.translation, check.target, SLIDE_SHARES, SLIDE_DIAGONAL_SHARES):
         rotation = answer.rotation
         for distance in distances:
             rotation, translation, _ = small.refine(rotation, translation, distance)

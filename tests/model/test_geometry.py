@@ -5,12 +5,14 @@ import pytest
 
 from model.geometry import (
     euler_to_matrix,
+    extent,
     fitness_and_rmse,
     nearest_rotation,
     principal_axes,
     registration_errors,
     remove_duplicates,
     rotation_angle_deg,
+    slides,
     summarise_errors,
 )
 
@@ -97,3 +99,21 @@ def test_principal_axes_run_from_the_least_spread_to_the_most():
     cloud = (rng.normal(size=(2000, 3)) * [0.1, 1.0, 3.0]) @ turn.T + [5.0, -2.0, 1.0]
     axes = principal_axes(cloud)
     np.testing.assert_allclose(np.abs(axes.T @ turn), np.eye(3), atol=0.05)  # each axis, up to its sign
+
+
+def test_slides_run_along_each_principal_axis_and_the_diagonals_between_two():
+    rng = np.random.default_rng(1)
+    turn = euler_to_matrix([10.0, 40.0, -70.0])
+    cloud = (rng.normal(size=(2000, 3)) * [0.2, 1.0, 3.0]) @ turn.T
+    start, size, axes = np.array([1.0, 2.0, 3.0]), extent(cloud), principal_axes(cloud)
+    steps = (np.array(slides(start, cloud, [0.05, 0.2], [0.1])) - start) / size  # in the axes' frame below
+    along, diagonal = steps[:12] @ axes, steps[12:] @ axes
+    assert len(steps) == 2 * 6 + 12
+    np.testing.assert_allclose(np.sort(np.abs(along).max(axis=1)), [0.05] * 6 + [0.2] * 6)
+    np.testing.assert_allclose(np.sort(np.abs(along), axis=1)[:, :2], 0.0, atol=1e-12)  # one axis each
+    np.testing.assert_allclose(np.linalg.norm(diagonal, axis=1), 0.1)
+    np.testing.assert_allclose(
+        np.sort(np.abs(diagonal), axis=1), [[0.0, 0.1 / np.sqrt(2), 0.1 / np.sqrt(2)]] * 12, atol=1e-12
+    )
+    assert len({tuple(np.sign(np.round(row, 9))) for row in diagonal}) == 12  # every pair of axes, every sign
+    assert len(slides(start, cloud, [0.05])) == 6  # no diagonals unless asked
