@@ -304,14 +304,16 @@ def slides(
     axis of the target, and by each diagonal share along the four diagonals between each two
     axes: where an answer slid beside the truth would lie."""
     size, axes = extent(target), principal_axes(target).T
-    diagonals = [
-        (first * axes[a] + second * axes[b]) / np.sqrt(2.0)
-        for a, b in ((0, 1), (0, 2), (1, 2))
-        for first in (1.0, -1.0)
-        for second in (1.0, -1.0)
+    along = [sign * axis for axis in axes for sign in (1.0, -1.0)]
+    pairs = ((0, 1), (0, 2), (1, 2))
+    between = [
+        (one * axes[a] + two * axes[b]) / np.sqrt(2.0) for a, b in pairs for one in (1.0, -1.0) for two in (1.0, -1.0)
     ]
-    along = [sign * share * axis for share in shares for axis in axes for sign in (1.0, -1.0)]
-    return [translation + size * step for step in along + [share * d for share in diagonal_shares for d in diagonals]]
+
+    def shifted(steps: Sequence[float], directions: list[np.ndarray]) -> list[np.ndarray]:
+        return [translation + step * size * direction for step in steps for direction in directions]
+
+    return shifted(shares, along) + shifted(diagonal_shares, between)
 
 
 def subset(points: np.ndarray, count: int) -> np.ndarray:

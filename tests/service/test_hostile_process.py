@@ -7,6 +7,7 @@ import socket
 import threading
 import time
 from concurrent.futures import ThreadPoolExecutor
+from urllib.parse import urlsplit
 
 import httpx
 import numpy as np
@@ -116,7 +117,7 @@ def test_an_early_answer_closes_a_connection_whose_body_trickles_on(tmp_path, ti
     """A body byte every half second kept uvicorn's idle timer stopped: the connection stayed open
     forever. Now the answer is followed by the lingering close (at most its 10 s drain)."""
     with service_process(tmp_path, tiny_model, max_body_bytes=str(1 << 20)) as (_, url, _):
-        port = int(url.rsplit(":", 1)[1])
+        port = urlsplit(url).port
         with socket.create_connection(("127.0.0.1", port)) as connection:
             head = f"{method} {path} HTTP/1.1\r\nHost: x\r\nContent-Type: application/json\r\nContent-Length: {length}"
             connection.sendall(head.encode() + b"\r\n\r\n" + b"x" * 10)

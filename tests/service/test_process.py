@@ -12,6 +12,7 @@ import sys
 import time
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
+from urllib.parse import urlsplit
 
 import httpx
 import numpy as np
@@ -213,7 +214,7 @@ def test_workers_share_the_port_and_metrics_add_them_up(tmp_path, tiny_model):
 
 def burst(url: str, count: int) -> list[int]:
     """`count` connections opened together, then one GET /health on each: their status codes."""
-    port = int(url.rsplit(":", 1)[1])
+    port = urlsplit(url).port
     connections = [http.client.HTTPConnection("127.0.0.1", port, timeout=120) for _ in range(count)]
     for connection in connections:
         connection.connect()
@@ -249,7 +250,7 @@ def worker_pids(supervisor: int) -> set[int]:
 
 def await_listeners(url: str, count: int) -> None:
     """Until `count` sockets listen on the url's port: /ready answers as soon as one worker does."""
-    port = f":{int(url.rsplit(':', 1)[1]):04X}"
+    port = f":{urlsplit(url).port:04X}"
     for _ in range(600):
         rows = [line.split() for line in Path("/proc/net/tcp").read_text().splitlines()[1:]]
         if sum(local.endswith(port) and state == "0A" for _, local, _, state, *_ in rows) >= count:  # 0A: LISTEN
