@@ -350,6 +350,7 @@ MIN_FITNESS = 0.3  # both ways: below it the clouds hardly touch, and a refineme
 MAX_DRIFT_SPACINGS = 0.2  # a right answer is where refine() settles; wrong ones slide on
 MIN_CONSTRAINT = 0.02  # inliers on one plane or one cylinder can slide along it without losing fit
 MIN_INLIERS = 30  # fewer matching points prove nothing
+SCORE_NORMAL_NEIGHBOURS = 12  # the target's normals of the constraint: the least-spread axis of this many points
 CHECK_REFINE_SECONDS = 10.0  # the check's refinement stops here at the latest
 
 
@@ -380,14 +381,6 @@ def inlier_constraint(points: np.ndarray, normals: np.ndarray) -> float:
         return 0.0
     jacobian = np.concatenate([np.cross(centred / radius, normals), normals], axis=1)
     return float(np.linalg.eigvalsh(jacobian.T @ jacobian / len(points))[0])
-
-
-def surface_normals(cloud: np.ndarray, tree: cKDTree, neighbours: int = 12) -> np.ndarray:
-    """Unit normals of `cloud` (indexed by tree) at its points: the least-spread axis of the neighbours."""
-    _, index = tree.query(cloud, k=min(neighbours, len(cloud)))
-    local = cloud[index] - cloud[index].mean(axis=1, keepdims=True)
-    _, vectors = np.linalg.eigh(np.einsum("nki,nkj->nij", local, local))
-    return vectors[:, :, 0]
 
 
 class Verdict(NamedTuple):
@@ -475,11 +468,11 @@ class GicpClouds(NamedTuple):
 
 class AlignmentClouds:
     """One pair's clouds made ready once for every refinement and check of its answers: the point
-    spacing, scipy's kd-tree of the target and its normals (scores), and small_gicp's clouds with
-    their normals and covariances and its kd-tree of the target (refinement). Never changed after
-    construction, so threads may share it; building it takes about as long as a few GICP iterations.
-    small_gicp runs on `threads` OpenMP threads (it holds the interpreter lock while it runs, so more
-    threads are the only way its work uses more than one CPU)."""
+    spacing, scipy's kd-tree of the target (scores), and small_gicp's clouds with their normals and
+    covariances and its kd-tree of the target (refinement; the target's normals also give scores
+    their constraint). Never changed after construction, so threads may share it; building it takes
+    about as long as a few GICP iterations. small_gicp runs on `threads` OpenMP threads (it holds the
+    interpreter lock while it runs, so more threads are the only way its work uses more than one CPU)."""
 
     def __init__(self, source: np.ndarray, target: np.ndarray, spacing: float | None = None, threads: int = 1):
         import small_gicp  # imported here so that the rest of this module needs only numpy/scipy
@@ -489,12 +482,14 @@ class AlignmentClouds:
         self.threads = threads
         self.spacing = max(point_spacing(self.source), point_spacing(self.target)) if spacing is None else spacing
         self.target_tree = cKDTree(self.target)
-        self.target_normals = surface_normals(self.target, self.target_tree)  # once, for every score
         # small_gicp's clouds are centred: far from the origin (map coordinates) its turns, linearised
         # about the origin, lose precision and answers failed the check.
         self.centre = self.target.min(axis=0) / 2 + self.target.max(axis=0) / 2
         clouds = [small_gicp.PointCloud(points - self.centre) for points in (self.source, self.target)]
         trees = [small_gicp.KdTree(cloud, num_threads=threads) for cloud in clouds]
+        # The constraint's normals come from fewer neighbours than GICP's covariances: its calibration's.
+        small_gicp.estimate_normals(clouds[1], trees[1], num_neighbors=SCORE_NORMAL_NEIGHBOURS, num_threads=threads)
+        self.target_normals = np.array(clouds[1].normals()[:, :3])  # a copy: the next call overwrites them
         for cloud, tree in zip(clouds, trees, strict=True):
             small_gicp.estimate_normals_covariances(cloud, tree, num_neighbors=20, num_threads=threads)
         self.gicp = GicpClouds(clouds[0], clouds[1], trees[1])
