@@ -102,15 +102,18 @@ NETWORK_REACH_DEG = 45.0
 # A verified answer matching less than SLIDE_FITNESS of the source may lie beside the truth, slid along
 # the surfaces where part of the clouds still overlaps (refined there, the check passes it): it is slid
 # back and forth by each of SLIDE_SHARES of the extent along each principal axis of the target and by
-# each of SLIDE_DIAGONAL_SHARES between two axes, refined on SLIDE_POINTS points; a pose fitting
-# SLIDE_MARGIN better that passes the check in full makes the pair ambiguous (_unless_slid). Three
-# shares: a refined slide stops anywhere from beside the truth to a fifth of the extent, and a probe
-# overshooting the truth settles beside it again.
+# each of SLIDE_DIAGONAL_SHARES between two axes, refined on SLIDE_POINTS points (coarse to fine, for
+# at most SLIDE_ITERATIONS per pass, the fine pass skipped where the coarse one leads back to the
+# answer); a pose fitting SLIDE_MARGIN better that passes the check in full makes the pair
+# ambiguous (_unless_slid). Three shares: a refined slide stops anywhere from beside the truth to a
+# fifth of the extent, and a probe overshooting the truth settles beside it again.
 SLIDE_FITNESS = 0.85
 SLIDE_SHARES = (0.05, 0.1, 0.2)
 SLIDE_DIAGONAL_SHARES = (0.05, 0.1)  # where no slide along one axis refines into the truth
 SLIDE_POINTS = 500
 SLIDE_MARGIN = 0.1
+SLIDE_RETURN_SHARE = 0.01  # a probe whose coarse pass brings it this near the answer is back in its basin
+SLIDE_ITERATIONS = 10  # per pass of a probe: on SLIDE_POINTS points GICP often cycles until its cap
 RIVAL_FITNESS_MARGIN = 0.05  # an unverified answer fitting within this of a verified one also contradicts it
 RIVAL_RMSE_SHARE = 0.8  # a verified answer this much tighter than a verified rival, and fitting as well, outranks it
 Stage = Literal["ifnet", "draft", "multistart", "features"]
@@ -490,17 +493,27 @@ def _unless_slid(prepared: _Prepared, answer: RegistrationResult, options: Regis
     check = prepared.check
     small = AlignmentClouds(subset(check.source, SLIDE_POINTS), subset(check.target, SLIDE_POINTS), check.spacing)
     scored = subset(check.source, STARTS_SCORE_POINTS)
+    centre, size = check.source.mean(axis=0), extent(check.target)
 
     def fit(rotation: np.ndarray, translation: np.ndarray) -> float:
         return check.fitness(scored, rotation, translation, INLIER_SPACINGS)
+
+    def returned(rotation: np.ndarray, translation: np.ndarray) -> bool:
+        """Back beside the answer: the finer pass would settle it there, where it fits no better."""
+        moved = np.linalg.norm(rotation @ centre + translation - answer.rotation @ centre - answer.translation)
+        return moved <= SLIDE_RETURN_SHARE * size and rotation_angle_deg(rotation, answer.rotation) <= AGREEMENT_DEG
 
     distances = refine_distances(check.spacing, prepared.normalisation.scale)
     bar = (1.0 + SLIDE_MARGIN) * fit(answer.rotation, answer.translation)
     best, best_fitness = answer, None  # the check's fitness (a user's threshold may set answer.fitness's)
     for translation in slides(answer.translation, check.target, SLIDE_SHARES, SLIDE_DIAGONAL_SHARES):
-        rotation = answer.rotation
-        for distance in distances:
-            rotation, translation, _ = small.refine(rotation, translation, distance)
+        rotation, translation, _ = small.refine(
+            answer.rotation, translation, distances[0], max_iterations=SLIDE_ITERATIONS
+        )
+        if returned(rotation, translation):
+            continue
+        for distance in distances[1:]:
+            rotation, translation, _ = small.refine(rotation, translation, distance, max_iterations=SLIDE_ITERATIONS)
         if fit(rotation, translation) <= bar:
             continue
         candidate = _checked(prepared, rotation, translation, options.refine or RefineOptions())
@@ -513,7 +526,7 @@ def _unless_slid(prepared: _Prepared, answer: RegistrationResult, options: Regis
     best.timings_ms["postprocess_ms"] += (time.perf_counter() - started) * 1000.0
     if best is answer:
         return answer
-    away = float(np.linalg.norm(best.translation - answer.translation)) / extent(check.target)
+    away = float(np.linalg.norm(best.translation - answer.translation)) / size
     reason = f"ambiguous: a pose {away:.0%} of the extent away also passes the check (a repeating scene?)"
     return dataclasses.replace(best, verified=False, reason=reason)
 

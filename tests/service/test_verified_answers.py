@@ -391,6 +391,29 @@ def test_a_right_answer_with_no_better_pose_beside_it_stays_verified():
     assert registration._unless_slid(prepared, answer, options) is answer
 
 
+def test_probes_that_come_back_to_the_answer_stop_after_their_coarse_pass(monkeypatch):
+    """Beside a right answer most probes' coarse pass leads back to it: their fine pass, which would
+    settle them there, is skipped, and every pass of a probe stops at SLIDE_ITERATIONS."""
+    from model.geometry import AlignmentClouds
+    from service import registration
+
+    prepared, options, rotation, translation = two_captures(stepped_wall)
+    answer = checked_answer(prepared, options, rotation, translation)
+    calls = []
+    refine = AlignmentClouds.refine
+
+    def counted(self, *args, **kwargs):
+        calls.append((len(self.source), kwargs.get("max_iterations")))
+        return refine(self, *args, **kwargs)
+
+    monkeypatch.setattr(AlignmentClouds, "refine", counted)
+    assert registration._unless_slid(prepared, answer, options) is answer
+    probes = len(registration.SLIDE_SHARES) * 6 + len(registration.SLIDE_DIAGONAL_SHARES) * 12
+    passes = [iterations for points, iterations in calls if points <= registration.SLIDE_POINTS]
+    assert probes <= len(passes) < 2 * probes
+    assert set(passes) == {registration.SLIDE_ITERATIONS}
+
+
 def test_a_verified_pose_slid_beside_the_truth_gives_way_to_it_flagged():
     """On the sample pair, the truth slid by a tenth of the extent along the target's longest axis and
     refined still passes the check, matching 0.4-0.5 of the source where the truth matches 0.8. A slide
