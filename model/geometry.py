@@ -388,12 +388,15 @@ class Verdict(NamedTuple):
     reason: str | None  # why not, when verified is False
 
 
-def missed(score: AlignmentScore) -> str | None:
-    """Why the score fails whatever its drift: too few matching points, or too little overlap."""
+def missed(score: AlignmentScore, min_fitness: float = MIN_FITNESS) -> str | None:
+    """Why the score fails whatever its drift: too few matching points, or too little overlap (below
+    `min_fitness` either way)."""
     if score.inliers < MIN_INLIERS:
         return f"only {score.inliers} points match within {score.threshold:.3g}"
-    if min(score.fitness, score.overlap) < MIN_FITNESS:
-        return f"low overlap: fitness {score.fitness:.2f}, reverse {score.overlap:.2f}"
+    if min(score.fitness, score.overlap) < min_fitness:
+        return (
+            f"low overlap: fitness {score.fitness:.2f}, reverse {score.overlap:.2f} (at least {min_fitness:g} needed)"
+        )
     return None
 
 
@@ -521,12 +524,13 @@ class AlignmentClouds:
         distances, _ = self.target_tree.query(moved, k=1, distance_upper_bound=spacings * self.spacing)
         return float(np.isfinite(distances).mean())
 
-    def verify(self, rotation: np.ndarray, translation: np.ndarray) -> Verification:
+    def verify(self, rotation: np.ndarray, translation: np.ndarray, min_fitness: float = MIN_FITNESS) -> Verification:
         """Is (R, t) right? Scores it at the clouds' point spacing, refines it once to see whether it
         has settled, and judges both (judge). Call it on the final answer, refined or not. A score
-        that fails on its own (missed) is not refined: where it would settle cannot save it."""
+        that fails on its own (missed, at `min_fitness`) is not refined: where it would settle cannot
+        save it."""
         score = self.score(rotation, translation)
-        if (reason := missed(score)) is not None:
+        if (reason := missed(score, min_fitness)) is not None:
             return Verification(False, reason, score, None)
         refined_rotation, refined_translation, _ = self.refine(rotation, translation, max_seconds=CHECK_REFINE_SECONDS)
         moved = apply_transform(self.source, rotation, translation)

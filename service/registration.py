@@ -37,6 +37,7 @@ from starlette.requests import Request
 
 from model.geometry import (
     INLIER_SPACINGS,
+    MIN_FITNESS,
     REFINE_SPACINGS,
     AlignmentClouds,
     FarthestPoints,
@@ -92,6 +93,9 @@ STARTS_SCORE_POINTS = 2_000  # source points that rank the starts' coarse answer
 # Points per cloud of the starts' network calls: a coarse answer each, which refinement settles;
 # each call costs about 0.4x one at the network's 768 points.
 STARTS_POINTS = 384
+# Their answers (and the half turns') are verified only where they match at least this of the source
+# both ways: of many turns tried, one that fits a third of a partial scan may be wrong.
+MIN_STARTS_FITNESS = 0.4
 AGREEMENT_DEG = 5.0  # two fitting answers further apart than this contradict each other
 # A draft's answer further than this from feature matching's guess is set aside unrefined: refinement
 # would not bring the two within AGREEMENT_DEG (a draft's answer is 4-15 deg off on ModelNet, median).
@@ -307,10 +311,13 @@ def refine_distances(spacing: float, scale: float, max_distance: float | None = 
     return [max(COARSE_DISTANCE_NORMALISED / scale, fine), fine]
 
 
-def _checked(prepared: _Prepared, rotation: np.ndarray, translation: np.ndarray, refine_options) -> _Candidate:
-    """Refine (when asked) and check one answer. Without a distance of the user's, the refinement
-    runs coarse to fine: first at a share of the clouds' size on fewer points (to pull in a few
-    degrees' error), then at a few point spacings (to settle on the surfaces)."""
+def _checked(
+    prepared: _Prepared, rotation: np.ndarray, translation: np.ndarray, refine_options, min_fitness: float = MIN_FITNESS
+) -> _Candidate:
+    """Refine (when asked) and check one answer (its fit at least `min_fitness` both ways). Without a
+    distance of the user's, the refinement runs coarse to fine: first at a share of the clouds' size
+    on fewer points (to pull in a few degrees' error), then at a few point spacings (to settle on
+    the surfaces)."""
     refinement = None
     if refine_options is not None:
         network_transform = to_matrix(rotation, translation)
@@ -327,7 +334,7 @@ def _checked(prepared: _Prepared, rotation: np.ndarray, translation: np.ndarray,
             )
             iterations += steps
         refinement = RefineReport(distances[-1], iterations, network_transform)
-    return _Candidate(rotation, translation, refinement, prepared.check.verify(rotation, translation))
+    return _Candidate(rotation, translation, refinement, prepared.check.verify(rotation, translation, min_fitness))
 
 
 def _result(
@@ -460,7 +467,10 @@ def _rivals(
     ranked.sort(key=lambda entry: -entry[0])
     refine_options = options.refine or RefineOptions()  # coarse answers: every candidate is refined
     best = ranked[:STARTS_REFINED]
-    return [_checked(prepared, rotation, translation, refine_options) for _, rotation, translation in best]
+    return [
+        _checked(prepared, rotation, translation, refine_options, MIN_STARTS_FITNESS)
+        for _, rotation, translation in best
+    ]
 
 
 def _half_turns(

@@ -144,6 +144,18 @@ def test_a_miss_is_judged_without_refining_it(monkeypatch):
     assert clouds.verify(rotation, translation).verified and len(refined) == 1  # a fit is refined once
 
 
+def test_a_fit_below_a_stricter_bar_fails_like_a_miss():
+    """`min_fitness` raises the overlap an answer needs both ways: below it, the right answer fails
+    as a miss (not refined, not unpinned), and the reason names the bar."""
+    source, target, rotation, translation = pair()
+    clouds = AlignmentClouds(source, target)
+    right = clouds.verify(rotation, translation)
+    assert right.verified
+    strict = clouds.verify(rotation, translation, min_fitness=min(right.score.fitness, right.score.overlap) + 0.01)
+    assert not strict.verified and strict.drift is None and not strict.unpinned
+    assert "low overlap" in strict.reason and "needed" in strict.reason
+
+
 @pytest.mark.parametrize("method", ["PLANE_ICP", "ICP", "GICP"])
 def test_refine_recovers_a_few_degrees_at_the_spacing_distance(method):
     source, target, rotation, translation = pair(jitter=0.005)

@@ -391,6 +391,24 @@ def test_a_right_answer_with_no_better_pose_beside_it_stays_verified():
     assert registration._unless_slid(prepared, answer, options) is answer
 
 
+def test_an_answer_of_the_rotated_starts_needs_a_closer_fit(monkeypatch):
+    """A rotated start's answer (and a half turn's) is verified only where it matches at least
+    MIN_STARTS_FITNESS of the source both ways: the same right pose passes as one method's answer
+    and fails as a start's when the bar lies above its fit."""
+    from service import registration
+
+    prepared, options, rotation, translation = two_captures(stepped_wall)
+    answer = registration._checked(prepared, rotation, translation, None)
+    assert answer.verification.verified
+    fit = min(answer.verification.score.fitness, answer.verification.score.overlap)
+    monkeypatch.setattr(registration, "MIN_STARTS_FITNESS", fit - 0.01)
+    (start,) = registration._rivals(prepared, [(rotation, translation)], options, [])
+    assert start.verification.verified
+    monkeypatch.setattr(registration, "MIN_STARTS_FITNESS", fit + 0.01)
+    (start,) = registration._rivals(prepared, [(rotation, translation)], options, [])
+    assert not start.verification.verified and "needed" in start.verification.reason
+
+
 def test_probes_that_come_back_to_the_answer_stop_after_their_coarse_pass(monkeypatch):
     """Beside a right answer most probes' coarse pass leads back to it: their fine pass, which would
     settle them there, is skipped, and every pass of a probe stops at SLIDE_ITERATIONS."""
