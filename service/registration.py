@@ -504,13 +504,14 @@ def _unless_slid(prepared: _Prepared, answer: RegistrationResult, options: Regis
     small = AlignmentClouds(subset(check.source, SLIDE_POINTS), subset(check.target, SLIDE_POINTS), check.spacing)
     scored = subset(check.source, STARTS_SCORE_POINTS)
     centre, size = check.source.mean(axis=0), extent(check.target)
+    answer_centre = answer.rotation @ centre + answer.translation  # where the answer moves the source's centre
 
     def fit(rotation: np.ndarray, translation: np.ndarray) -> float:
         return check.fitness(scored, rotation, translation, INLIER_SPACINGS)
 
     def returned(rotation: np.ndarray, translation: np.ndarray) -> bool:
         """Back beside the answer: the finer pass would settle it there, where it fits no better."""
-        moved = np.linalg.norm(rotation @ centre + translation - answer.rotation @ centre - answer.translation)
+        moved = np.linalg.norm(rotation @ centre + translation - answer_centre)
         return moved <= SLIDE_RETURN_SHARE * size and rotation_angle_deg(rotation, answer.rotation) <= AGREEMENT_DEG
 
     distances = refine_distances(check.spacing, prepared.normalisation.scale)

@@ -7,7 +7,15 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from model.geometry import apply_transform, euler_to_matrix, extent, from_matrix, principal_axes, rotation_angle_deg
+from model.geometry import (
+    apply_transform,
+    euler_to_matrix,
+    extent,
+    from_matrix,
+    principal_axes,
+    rotation_angle_deg,
+    slides,
+)
 from service.formats import read_cloud_file
 from service.settings import Settings
 
@@ -426,7 +434,9 @@ def test_probes_that_come_back_to_the_answer_stop_after_their_coarse_pass(monkey
 
     monkeypatch.setattr(AlignmentClouds, "refine", counted)
     assert registration._unless_slid(prepared, answer, options) is answer
-    probes = len(registration.SLIDE_SHARES) * 6 + len(registration.SLIDE_DIAGONAL_SHARES) * 12
+    probes = len(
+        slides(answer.translation, prepared.check.target, registration.SLIDE_SHARES, registration.SLIDE_DIAGONAL_SHARES)
+    )
     passes = [iterations for points, iterations in calls if points <= registration.SLIDE_POINTS]
     assert probes <= len(passes) < 2 * probes
     assert set(passes) == {registration.SLIDE_ITERATIONS}
