@@ -8,8 +8,11 @@ Sets: ModelNet10 test by the paper's protocol (clean "same", "jitter" sigma 0.01
 real-scan pairs cut from indoor_scans.npz and lidar_scans.npz as bench.harness.scan_pair cuts
 them (two overlapping views, each resampled on its own, the second moved). Candidate answers
 per pair: the truth with a little noise, the network's answer (inputs prepared as the service
-prepares them), that answer refined, and the truth perturbed by 2-90 degrees or by a
-translation offset. An answer is right when its rotation error is <= 2 degrees and its
+prepares them), that answer refined, the truth perturbed by 2-90 degrees or by a
+translation offset, and poses refined from the truth slid aside or turned 20-180 degrees. Every
+wrong answer that gets a verified verdict is then sent to the service (`auto`) as the request's
+`init`: the check alone cannot tell a symmetric object's flipped pose from the truth, the
+pipeline's other answers must. An answer is right when its rotation error is <= 2 degrees and its
 translation error <= 2 % of the cloud's extent (the diagonal of its bounding box). The table
 counts, per set, the right answers the check verified and the wrong answers it verified (the
 latter must be zero). Every cloud is first cut to the subset the service checks
@@ -25,6 +28,7 @@ from pathlib import Path
 
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
+import httpx  # noqa: E402
 import numpy as np  # noqa: E402
 
 from bench import harness  # noqa: E402
@@ -57,6 +61,7 @@ MODELNET_SETS = {
 }
 # Slides of the truth, in shares of the extent: about the service's own (SLIDE_SHARES) and past them.
 SLID_SHARES = (0.05, 0.1, 0.2)
+TURNED_DEG = (20.0, 180.0)  # turns of the truth about random axes, refined: where a flipped pose fits
 
 
 def network_answer(network: harness.Network, pair: harness.Pair):
@@ -130,29 +135,47 @@ def candidates(
     offset = truth.copy()
     offset[:3, 3] += random_axis(rng) * rng.uniform(1.25, 10.0) * harness.RIGHT_TRANSLATION_SHARE * size
     out.append(("shifted", *from_matrix(offset), 0.0))
-    out += slid_and_refined(pair, normalisation.scale, spacing)
+    clouds = AlignmentClouds(source, target, spacing)
+    slid = [(pair.rotation, moved) for moved in slides(pair.translation, target, SLID_SHARES)]
+    out += refined_poses(clouds, slid, normalisation.scale, "slid refined")
+    turns = [about_point(axis_angle(random_axis(rng), rng.uniform(*TURNED_DEG)), centre) for _ in range(perturbations)]
+    out += refined_poses(clouds, [from_matrix(turn @ truth) for turn in turns], normalisation.scale, "turned refined")
     return out
 
 
-def slid_and_refined(pair: harness.Pair, scale: float, spacing: float) -> list[tuple]:
-    """The truth shifted by each of SLID_SHARES of the target's extent both ways along each of its
-    principal axes, refined coarse to fine as the service refines: the poses a refinement settles on
-    when an answer lies beside the truth, where a long or flat scene may fit again."""
-    clouds = AlignmentClouds(pair.source, pair.target, spacing)
+def refined_poses(clouds: AlignmentClouds, poses: list[tuple], scale: float, kind: str) -> list[tuple]:
+    """Each pose refined coarse to fine as the service refines: where the truth slid along a long or
+    flat scene, or turned on a symmetric object, settles on a wrong pose that fits again."""
     out = []
-    for translation in slides(pair.translation, pair.target, SLID_SHARES):
-        rotation = pair.rotation
-        for distance in refine_distances(spacing, scale):
+    for rotation, translation in poses:
+        for distance in refine_distances(clouds.spacing, scale):
             rotation, translation, _ = clouds.refine(rotation, translation, distance)
-        out.append(("slid refined", rotation, translation, 0.0))
+        out.append((kind, rotation, translation, 0.0))
     return out
+
+
+def given_as_init(client: httpx.Client, pair: harness.Pair, rotation: np.ndarray, translation: np.ndarray) -> str:
+    """What `auto` answers when a wrong pose is the request's `init`: "right", "flagged" (wrong, not
+    verified) or "wrong verified"."""
+    options = {"method": "auto", "refine": True, "init": to_matrix(rotation, translation).tolist()}
+    response = client.post(
+        "/register",
+        params={"options": json.dumps(options)},
+        content=harness.npz_body(pair.source, pair.target),
+        headers={"content-type": "application/x-npz"},
+    )
+    response.raise_for_status()
+    answer = response.json()
+    if is_right(pair, np.array(answer["rotation"]), np.array(answer["translation"]))[0]:
+        return "right"
+    return "wrong verified" if answer["verified"] else "flagged"
 
 
 # ---------------------------------------------------------------- run
 
 
 def evaluate(
-    sets: dict[str, list[harness.Pair]], network: harness.Network, perturbations: int, seed: int
+    sets: dict[str, list[harness.Pair]], network: harness.Network, perturbations: int, seed: int, client: httpx.Client
 ) -> list[dict]:
     rows, settings = [], Settings()
     for set_name, pairs in sets.items():
@@ -166,6 +189,7 @@ def evaluate(
             for (kind, rotation, translation, seconds), answer in zip(found, answers):
                 right, rotation_error, translation_share = is_right(pair, rotation, translation)
                 verdict = verify_alignment(pair.source, pair.target, rotation, translation, spacing)
+                fooled = answer.verified and not right
                 rows.append(
                     {
                         "set": set_name,
@@ -176,6 +200,7 @@ def evaluate(
                         "translation_error_share": translation_share,
                         "verified": verdict.verified,
                         "answer_verified": answer.verified,  # the service's verdict: the check, then the slide check
+                        "as_init": given_as_init(client, pair, rotation, translation) if fooled else None,
                         "reason": verdict.reason,
                         "seconds": seconds,
                         "drift": verdict.drift,
@@ -259,6 +284,7 @@ def compare_refinement(sets: dict[str, list[harness.Pair]], network: harness.Net
 
 
 KINDS = ("truth+noise", "network", "refined", "truth+5deg refined", "slid refined")  # right answers verified, by kind
+AS_INIT = ("right", "flagged", "wrong verified")
 
 
 def table(rows: list[dict]) -> list[dict]:
@@ -275,8 +301,10 @@ def table(rows: list[dict]) -> list[dict]:
             "wrong_verified": sum(row["verified"] for row in wrong),
             "wrong": len(wrong),
             "slid_wrong_verified": sum(row["verified"] for row in wrong if row["kind"] == "slid refined"),
+            "turned_wrong_verified": sum(row["verified"] for row in wrong if row["kind"] == "turned refined"),
             "right_answer_verified": sum(row["answer_verified"] for row in right),
             "wrong_answer_verified": sum(row["answer_verified"] for row in wrong),
+            **{f"as_init_{outcome}": sum(row["as_init"] == outcome for row in wrong) for outcome in AS_INIT},
         }
         for kind in KINDS:
             kind_right = [row for row in right if row["kind"] == kind]
@@ -293,13 +321,18 @@ def markdown(summary: list[dict], command: str, seconds: float) -> str:
         "translation error <= 2 % of the target's bounding-box diagonal. Candidates per pair: the truth moved "
         "by at most half a point spacing (truth+noise), the network's answer as the service computes it, that "
         "answer refined (model.geometry.refine), the truth turned 5 deg and refined, the truth turned 2-90 deg "
-        "(log-uniform) about the overlap's centre, the truth shifted by 2.5-20 % of the extent, and the truth "
+        "(log-uniform) about the overlap's centre, the truth shifted by 2.5-20 % of the extent, the truth "
         f"slid by {', '.join(f'{share:.0%}' for share in SLID_SHARES)} of the extent both ways along each "
-        "principal axis of the target and refined coarse to fine as the service refines (slid refined). "
+        "principal axis of the target and refined coarse to fine as the service refines (slid refined), and "
+        f"the truth turned {TURNED_DEG[0]:.0f}-{TURNED_DEG[1]:.0f} deg (uniform) about random axes through "
+        "the overlap's centre and refined alike (turned refined). "
         '"Check": the check alone; "answer": the '
         "verdict a request's answer gets (service.registration.verdicts: the check, then the slide check, "
-        "which looks beside a verified answer matching little of the source). Last columns: right answers "
-        "the check verified, by kind.",
+        "which looks beside a verified answer matching little of the source). Neither judges a flipped pose "
+        "of a symmetric object: the pipeline does, by its other answers (feature matching, the rotated "
+        "starts, the half turns). So every wrong answer with a verified verdict is sent to the service "
+        "(`auto`, `refine`) as the request's `init`, the network starting from it: what the service answers "
+        'is the last columns\' count ("as init"). Last columns: right answers the check verified, by kind.',
         "",
         f"The rule (model.geometry.judge): at least {MIN_INLIERS} source points within {INLIER_SPACINGS} point "
         f"spacings of the target, fitness and reverse overlap >= {MIN_FITNESS}, inlier constraint >= "
@@ -307,15 +340,18 @@ def markdown(summary: list[dict], command: str, seconds: float) -> str:
         "spacings when refine() (GICP) refines the answer once (a right answer has settled).",
         "",
         "| set | pairs | right verified: check | answer | wrong verified: check | of which slid refined | "
-        "**answer** | " + " | ".join(KINDS) + " |",
-        "|---|---:|---:|---:|---:|---:|---:|" + "---:|" * len(KINDS),
+        "turned refined | answer | as init: right / flagged | **as init: wrong verified** | "
+        + " | ".join(KINDS)
+        + " |",
+        "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|" + "---:|" * len(KINDS),
     ]
     for row in summary:
         kinds = " | ".join(row[f"{kind}_right_verified"] for kind in KINDS)
         lines.append(
             f"| {row['set']} | {row['pairs']} | {row['right_verified']} / {row['right']} | "
             f"{row['right_answer_verified']} | {row['wrong_verified']} / {row['wrong']} | "
-            f"{row['slid_wrong_verified']} | **{row['wrong_answer_verified']}** | {kinds} |"
+            f"{row['slid_wrong_verified']} | {row['turned_wrong_verified']} | {row['wrong_answer_verified']} | "
+            f"{row['as_init_right']} / {row['as_init_flagged']} | **{row['as_init_wrong verified']}** | {kinds} |"
         )
     return "\n".join(lines) + "\n"
 
@@ -372,7 +408,8 @@ def main(argv: list[str] | None = None) -> None:
         print(text)
         write(args.out.with_name("refinement"), text, {"command": command, "seconds": seconds, "results": results})
         return
-    rows = evaluate(sets, network, args.perturbations, args.seed)
+    with harness.Service() as service, httpx.Client(base_url=service.url, timeout=600, trust_env=False) as client:
+        rows = evaluate(sets, network, args.perturbations, args.seed, client)
     summary = table(rows)
     seconds = time.perf_counter() - started
     text = markdown(summary, command.strip(), seconds)

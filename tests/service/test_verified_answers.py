@@ -523,3 +523,38 @@ def test_verdicts_are_those_a_request_would_get():
     assert right.verified and not unverified.verified
     assert not flagged.verified and flagged.reason.startswith("ambiguous")
     assert np.linalg.norm(flagged.translation - translation) < 0.01 * extent
+
+
+@pytest.mark.parametrize(
+    ("axis", "degrees"),
+    [([0.16, -0.82, 0.55], 180.0), ([0.74, 0.54, -0.4], 87.0)],
+    ids=["half-turn", "quarter-turn"],
+)
+@pytest.mark.parametrize("method", ["ifnet", "auto"])
+async def test_a_wrong_pose_the_check_passes_given_as_init_is_not_the_verified_answer(
+    serve, shipped_model, axis, degrees, method
+):
+    """The sample table's truth turned about an axis through the overlap's centre and refined as the
+    service refines settles on a wrong pose (180 and 61 deg off) that the check and the slide check
+    pass (fitness 0.70 and 0.48 against the truth's 0.81): they cannot tell it from the truth. Sent as the request's
+    `init`, the network starts there: alone (`ifnet`) it stays there, and feature matching's
+    answer must contradict it (without that rule it is verified); `auto` must find the truth or
+    flag its answer."""
+    from scipy.spatial.transform import Rotation
+
+    from model.geometry import AlignmentClouds, Normalisation, to_matrix
+    from service import registration
+
+    source, target, truth = sample_pair(turned=False)
+    clouds = AlignmentClouds(source, target)
+    centre = apply_transform(source, *from_matrix(truth)).mean(axis=0)
+    turn = Rotation.from_rotvec(np.radians(degrees) * np.asarray(axis) / np.linalg.norm(axis)).as_matrix()
+    rotation, translation = turn @ truth[:3, :3], turn @ (truth[:3, 3] - centre) + centre
+    for distance in registration.refine_distances(clouds.spacing, Normalisation(source, target).scale):
+        rotation, translation, _ = clouds.refine(rotation, translation, distance)
+    (verdict,) = registration.verdicts(source, target, [(rotation, translation)], Settings())
+    assert verdict.verified and rotation_angle_deg(rotation, truth[:3, :3]) > 45  # the check alone is fooled
+    async with serve(Settings(model_path=shipped_model, warmup=False)) as (_, client):
+        init = to_matrix(rotation, translation).tolist()
+        answer = await register(client, source, target, method=method, init=init, refine=True)
+    assert rotation_error(answer, truth) < 2.0 or answer["verified"] is False, answer
