@@ -597,12 +597,15 @@ FEATURE_VOXEL = 0.05  # the clouds are scaled so that the voxel is this: KISS-Ma
 FEATURE_MAX_VOXELS = 2**19  # half of KISS-Matcher's voxel key range (21 bits per axis) from the origin
 
 
-def feature_match(source: np.ndarray, target: np.ndarray, spacing: float) -> tuple[np.ndarray, np.ndarray]:
-    """(R, t) from matching local features (KISS-Matcher), whatever the rotation: a coarse answer
-    to refine. Identity where the matcher finds nothing (the answer's check then fails)."""
+def feature_match(
+    source: np.ndarray, target: np.ndarray, spacing: float, spacings: float = FEATURE_VOXEL_SPACINGS
+) -> tuple[np.ndarray, np.ndarray]:
+    """(R, t) from matching local features (KISS-Matcher) on a voxel of `spacings` point spacings,
+    whatever the rotation: a coarse answer to refine. Identity where the matcher finds nothing (the
+    answer's check then fails)."""
     import kiss_matcher  # imported here so that the rest of this module needs only numpy/scipy
 
-    scale = FEATURE_VOXEL / (FEATURE_VOXEL_SPACINGS * spacing) if spacing > 0 else 1.0
+    scale = FEATURE_VOXEL / (spacings * spacing) if spacing > 0 else 1.0
     # Clouds beyond the matcher's voxel keys (map coordinates) are both moved by one offset: out
     # there it drops points and could crash the process. Only those: its answers change with the
     # clouds' placement, and moving real scans lost some of them.

@@ -79,6 +79,9 @@ COARSE_POINTS = 3_000
 # Feature matching's voxel follows each cloud's point spacing at up to this many points: the
 # check's sparser subset would give it a voxel too coarse for some real scans (docs/training/scenes.md).
 FEATURE_SPACING_POINTS = 20_000
+# Their voxel spans this many of those spacings: the matcher gets the check's sparser subset of a
+# real scan, whose noise wants wider features than the default 1.5 (service/README.md).
+THINNED_FEATURE_SPACINGS = 3.5
 # The global path's starts: the 24 rotations of a cube, every rotation within the network's range
 # of one of them; the network's answers from the best few (by fitness) are refined and checked.
 STARTS = Rotation.create_group("O").as_matrix()
@@ -396,12 +399,13 @@ def _feature_guess(prepared: _Prepared) -> _FeatureGuess:
     """Feature matching (KISS-Matcher), whatever the rotation: a coarse answer."""
     started = time.perf_counter()
     check = prepared.check
-    spacing = check.spacing
     if len(prepared.source) > len(check.source) or len(prepared.target) > len(check.target):  # thinned
         spacing = max(
             point_spacing(subset(cloud, FEATURE_SPACING_POINTS)) for cloud in (prepared.source, prepared.target)
         )
-    rotation, translation = feature_match(check.source, check.target, spacing)
+        rotation, translation = feature_match(check.source, check.target, spacing, THINNED_FEATURE_SPACINGS)
+    else:
+        rotation, translation = feature_match(check.source, check.target, check.spacing)
     return _FeatureGuess(rotation, translation, time.perf_counter() - started)
 
 

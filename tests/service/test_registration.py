@@ -388,6 +388,24 @@ def test_an_unpinned_draft_answer_stands_unverified_where_feature_matching_agree
         assert ("model", 768) in asked
 
 
+@pytest.mark.parametrize("scan", ["pcl_table_scene_mug", "sunrgbd_000017"])
+def test_feature_matching_finds_the_motion_of_two_samples_of_a_large_scan(real_scans, scan):
+    """Two independent halves of a real scan (100k and 25k points each), the second moved and
+    noisy: the matcher gets the check's 8,000-point subsets, on a voxel of THINNED_FEATURE_SPACINGS
+    spacings (the default 1.5 left it 65 and 11 deg off here)."""
+    from service import registration
+
+    rng = np.random.default_rng(0)
+    cloud = real_scans[scan]
+    source, target = (cloud[rng.random(len(cloud)) < 0.5] for _ in range(2))
+    target = apply_transform(target + rng.normal(0.0, 0.002, target.shape), TRUE_ROTATION, TRUE_TRANSLATION)
+    options, settings, _ = pipeline_inputs(None, None, method="auto")
+    prepared = registration._prepare(source, target, STARTS_POINTS, options, settings)
+    assert len(prepared.check.source) < len(prepared.source)  # thinned
+    guess = registration._feature_guess(prepared)
+    assert rotation_angle_deg(guess.rotation, TRUE_ROTATION) < 2.0
+
+
 def test_feature_matching_that_agrees_with_a_verified_answer_is_not_refined_again(real_scans, monkeypatch):
     """Its guess within AGREEMENT_DEG of the verified answer confirms it as it is; a guess further off
     is refined and checked (here it then fits too poorly to contradict the answer)."""
