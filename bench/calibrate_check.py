@@ -14,8 +14,9 @@ wrong answer that gets a verified verdict is then sent to the service (`auto`) a
 `init`: the check alone cannot tell a symmetric object's flipped pose from the truth, the
 pipeline's other answers must. An answer is right when its rotation error is <= 2 degrees and its
 translation error <= 2 % of the cloud's extent (the diagonal of its bounding box). The table
-counts, per set, the right answers the check verified and the wrong answers it verified (the
-latter must be zero). Every cloud is first cut to the subset the service checks
+counts, per set, the right answers verified, the wrong answers verified (by the check alone, and
+by the verdict a request's answer gets) and what the service answered from the latter (none of
+which may be wrong and verified). Every cloud is first cut to the subset the service checks
 (service.registration.CHECK_MAX_POINTS).
 """
 
