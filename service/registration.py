@@ -639,8 +639,9 @@ async def _answer(
             draft, paid, features_answer, unconfirmed = await _confirmed_draft(
                 base, features, first.draft, options, run_blocking
             )
-            if draft is not None and draft.verified and _turned(draft, base, NETWORK_REACH_DEG):
-                # Asked at feature matching's turn: the starts do not judge it, its half turns do.
+            if draft is not None and draft.verified and (options.init is not None or _turned(draft, base)):
+                # Asked from the user's guess or at feature matching's turn, either of which may be a
+                # symmetric shape's flipped pose: the starts do not judge it, its half turns do.
                 flipped, cost = await run_blocking(_half_turns, base, draft, first.model, options)
                 return _given_and_charged([draft, *flipped], options.method, [cost])
             if draft is not None:
@@ -777,9 +778,9 @@ async def _confirmed_draft(
     return set_aside()
 
 
-def _turned(answer: RegistrationResult, prepared: _Prepared, degrees: float) -> bool:
-    """The answer lies more than `degrees` from the request's `init` (the network's own reach)."""
-    return bool(rotation_angle_deg(answer.rotation, prepared.init[:3, :3]) > degrees)
+def _turned(answer: RegistrationResult, prepared: _Prepared) -> bool:
+    """The answer lies beyond the network's reach (NETWORK_REACH_DEG) of the request's `init`."""
+    return bool(rotation_angle_deg(answer.rotation, prepared.init[:3, :3]) > NETWORK_REACH_DEG)
 
 
 def _given(answers: list[RegistrationResult], method: str) -> RegistrationResult:

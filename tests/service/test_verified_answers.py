@@ -324,6 +324,36 @@ def test_a_draft_answer_at_feature_matchings_turn_is_judged_by_its_half_turns(mo
     assert rotation_angle_deg(answer.rotation, truth) < 0.01
 
 
+def test_a_draft_answer_at_the_users_init_is_judged_by_its_half_turns(monkeypatch):
+    """The same box, the request's `init` at its flipped pose: the draft stays there (within its
+    reach of `init`) and feature matching agrees. Its half turns still find the truth."""
+    import asyncio
+
+    from conftest import pipeline_inputs
+
+    from model.geometry import to_matrix
+    from service import registration
+    from service.batcher import Prediction
+    from service.registration import Network
+
+    rng = np.random.default_rng(8)
+    block = rng.uniform([1.7, 0.7, 0.5], [2.0, 1.0, 0.6], size=(100, 3))
+    source = np.concatenate([box_surface(3000, rng), block])
+    truth = euler_to_matrix([150.0, 40.0, -70.0])
+    flipped = truth @ np.diag([-1.0, -1.0, 1.0])
+    monkeypatch.setattr(registration, "feature_match", lambda *args: (flipped, np.zeros(3)))
+
+    async def stays(source_n, target_n):
+        return Prediction(np.eye(3), np.zeros(3))
+
+    init = to_matrix(flipped, np.zeros(3)).tolist()
+    options, settings, _ = pipeline_inputs(None, None, method="auto", refine={}, init=init)
+    networks = [Network("object", 768, stays, draft=Network("object", 384, stays, "draft"))]
+    answer = asyncio.run(registration.register_clouds(source, source @ truth.T, options, settings, networks))
+    assert (answer.stage, answer.verified) == ("multistart", True), answer.reason
+    assert rotation_angle_deg(answer.rotation, truth) < 0.01
+
+
 def room(rng: np.random.Generator, boxes: list[tuple[float, float]], count: int = 6000) -> np.ndarray:
     """A floor and a back wall along x in [0, 6], boxes (x centre, width) standing against the wall."""
     floor = np.column_stack([rng.uniform(0, 6, count), rng.uniform(0, 2, count), np.zeros(count)])
