@@ -290,6 +290,15 @@ def test_a_verified_rival_that_fits_worse_with_looser_inliers_does_not_contradic
         assert flagged.verified is False and flagged.reason.startswith("ambiguous")
 
 
+def box_with_a_block() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A box with a block on one face, its true turn (150 deg, beyond the draft's reach) and that
+    turn after half a turn about the box's short axis: a flipped pose that fits all but the block."""
+    rng = np.random.default_rng(8)
+    block = rng.uniform([1.7, 0.7, 0.5], [2.0, 1.0, 0.6], size=(100, 3))  # on the top face, at a corner
+    truth = euler_to_matrix([150.0, 40.0, -70.0])
+    return np.concatenate([box_surface(3000, rng), block]), truth, truth @ np.diag([-1.0, -1.0, 1.0])
+
+
 def test_a_draft_answer_at_feature_matchings_turn_is_judged_by_its_half_turns(monkeypatch):
     """A box with a block on one face, turned 150 deg, beyond the draft's reach. Feature matching
     lands on the box turned half a turn from the truth (the block aside, it fits), and so does the
@@ -304,11 +313,7 @@ def test_a_draft_answer_at_feature_matchings_turn_is_judged_by_its_half_turns(mo
     from service.batcher import Prediction
     from service.registration import Network
 
-    rng = np.random.default_rng(8)
-    block = rng.uniform([1.7, 0.7, 0.5], [2.0, 1.0, 0.6], size=(100, 3))  # on the top face, at a corner
-    source = np.concatenate([box_surface(3000, rng), block])
-    truth = euler_to_matrix([150.0, 40.0, -70.0])
-    flipped = truth @ np.diag([-1.0, -1.0, 1.0])  # the box half a turn about its short axis, then the truth
+    source, truth, flipped = box_with_a_block()
     monkeypatch.setattr(registration, "feature_match", lambda *args: (flipped, np.zeros(3)))
     asked = []
 
@@ -336,11 +341,7 @@ def test_a_draft_answer_at_the_users_init_is_judged_by_its_half_turns(monkeypatc
     from service.batcher import Prediction
     from service.registration import Network
 
-    rng = np.random.default_rng(8)
-    block = rng.uniform([1.7, 0.7, 0.5], [2.0, 1.0, 0.6], size=(100, 3))
-    source = np.concatenate([box_surface(3000, rng), block])
-    truth = euler_to_matrix([150.0, 40.0, -70.0])
-    flipped = truth @ np.diag([-1.0, -1.0, 1.0])
+    source, truth, flipped = box_with_a_block()
     monkeypatch.setattr(registration, "feature_match", lambda *args: (flipped, np.zeros(3)))
 
     async def stays(source_n, target_n):
