@@ -104,7 +104,7 @@ AGREEMENT_DEG = 5.0  # two fitting answers further apart than this contradict ea
 # would not bring the two within AGREEMENT_DEG (a draft's answer is 4-15 deg off on ModelNet, median).
 DRAFT_REACH_DEG = 30.0
 # The networks learnt turns of up to this per axis: a draft's answer turned further from `init` may be
-# the guess's, which the rotated starts do not judge.
+# the guess's, a symmetric shape's turned pose, so it is judged before it stands (_answer).
 NETWORK_REACH_DEG = 45.0
 # A verified answer matching less than SLIDE_FITNESS of the source may lie beside the truth, slid along
 # the surfaces where part of the clouds still overlaps (refined there, the check passes it): it is slid
@@ -641,9 +641,14 @@ async def _answer(
             )
             if draft is not None and draft.verified and (options.init is not None or _turned(draft, base)):
                 # Asked from the user's guess or at feature matching's turn, either of which may be a
-                # symmetric shape's flipped pose: the starts do not judge it, its half turns do.
-                flipped, cost = await run_blocking(_half_turns, base, draft, first.model, options)
-                return _given_and_charged([draft, *flipped], options.method, [cost])
+                # symmetric shape's flipped pose: its half turns judge it and, where it matches little
+                # of the source (room for a third or a quarter of a turn to fit too), the rotated starts.
+                found, cost = await run_blocking(_half_turns, base, draft, first.model, options)
+                costs = [cost]
+                if draft.fitness < SLIDE_FITNESS:
+                    rivals, cost = await _judged_by_starts(base, first, [draft], options, run_blocking)
+                    found, costs = found + rivals, costs + [cost]
+                return _given_and_charged([draft, *found], options.method, costs)
             if draft is not None:
                 return draft
             discarded += paid
@@ -671,17 +676,29 @@ async def _answer(
         answers.append(await run_blocking(_finish_features, base, features, first.model, options))
     # The rotated starts search for an answer where none is verified and, past `ifnet`, judge the
     # verified ones: on a symmetric shape a network or feature matching may fit a flipped pose as
-    # well as the right one. The first network's draft makes their coarse answers where it has one.
+    # well as the right one.
     if options.method != "ifnet":
-        starter = first.draft or first
-        turned, target = await run_blocking(_starts, base)
-        predictions = await asyncio.gather(*(starter.predict(cloud, target) for cloud in turned))
         verified = [answer for answer in answers if answer.verified]
-        found, cost = await run_blocking(_finish_multistart, base, list(predictions), first.model, options, verified)
+        found, cost = await _judged_by_starts(base, first, verified, options, run_blocking)
         answers += found
         discarded.append(cost)
     # `ifnet` answers with the network, whatever else fits; the other stages only judge it.
     return _given_and_charged(answers, options.method, discarded)
+
+
+async def _judged_by_starts(
+    prepared: _Prepared,
+    network: Network,
+    verified: list[RegistrationResult],
+    options: RegistrationOptions,
+    run_blocking: RunBlocking,
+) -> tuple[list[RegistrationResult], dict[str, float]]:
+    """The network's (its draft's, where it has one) answers from the rotated starts: candidates, or
+    only the rivals of the `verified` answers they judge (_finish_multistart), and their cost."""
+    starter = network.draft or network
+    turned, target = await run_blocking(_starts, prepared)
+    predictions = await asyncio.gather(*(starter.predict(cloud, target) for cloud in turned))
+    return await run_blocking(_finish_multistart, prepared, list(predictions), network.model, options, verified)
 
 
 async def _confirmed_draft(

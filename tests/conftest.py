@@ -262,6 +262,21 @@ def kabsch(source: np.ndarray, target: np.ndarray) -> tuple[np.ndarray, np.ndarr
     return rotation, target_centre - rotation @ source_centre
 
 
+def limited_reach(turned_by: list, reach_deg: float = 45.0):
+    """A network that, like IFNet, only knows turns up to reach_deg: beyond, it answers "no turn"."""
+    from model.geometry import rotation_angle_deg
+    from service.batcher import Prediction
+
+    async def predict(source_n, target_n):
+        rotation, translation = kabsch(source_n.astype(np.float64), target_n.astype(np.float64))
+        turned_by.append(float(rotation_angle_deg(rotation, np.eye(3))))
+        if turned_by[-1] > reach_deg:
+            return Prediction(np.eye(3), np.zeros(3), inference_ms=1.0)
+        return Prediction(rotation, translation, inference_ms=1.0)
+
+    return predict
+
+
 def pipeline_inputs(
     network_points: int,
     predict,

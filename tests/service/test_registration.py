@@ -11,7 +11,7 @@ import functools
 
 import numpy as np
 import pytest
-from conftest import kabsch, pipeline_inputs
+from conftest import kabsch, limited_reach, pipeline_inputs
 
 from model.geometry import (
     INLIER_SPACINGS,
@@ -261,19 +261,6 @@ def test_a_verified_draft_answer_the_guess_is_too_coarse_to_confirm_is_confirmed
     starts = [("draft", registration.STARTS_POINTS)] * 24
     assert asked == [("draft", 384), ("model", 768), *starts] and (other.stage, other.verified) == ("ifnet", True)
     assert len(checked) == 3
-
-
-def limited_reach(turned_by: list, reach_deg: float = 45.0):
-    """A network that, like IFNet, only knows turns up to reach_deg: beyond, it answers "no turn"."""
-
-    async def predict(source_n, target_n):
-        rotation, translation = kabsch(source_n.astype(np.float64), target_n.astype(np.float64))
-        turned_by.append(float(rotation_angle_deg(rotation, np.eye(3))))
-        if turned_by[-1] > reach_deg:
-            return Prediction(np.eye(3), np.zeros(3), inference_ms=1.0)
-        return Prediction(rotation, translation, inference_ms=1.0)
-
-    return predict
 
 
 def test_auto_asks_the_draft_again_from_feature_matchings_guess_for_a_turn_beyond_its_reach(real_scans, monkeypatch):

@@ -303,8 +303,8 @@ def test_a_draft_answer_at_feature_matchings_turn_is_judged_by_its_half_turns(mo
     """A box with a block on one face, turned 150 deg, beyond the draft's reach. Feature matching
     lands on the box turned half a turn from the truth (the block aside, it fits), and so does the
     draft asked from there: verified and confirmed. Its half turns about the target's principal axes
-    find the truth, which fits better with tighter inliers: it is the answer, verified. The model is
-    never asked."""
+    find the truth (the rotated starts, this network stuck, do not), which fits better with tighter
+    inliers: it is the answer, verified. The model is never asked."""
     import asyncio
 
     from conftest import pipeline_inputs
@@ -324,7 +324,7 @@ def test_a_draft_answer_at_feature_matchings_turn_is_judged_by_its_half_turns(mo
     options, settings, _ = pipeline_inputs(None, None, method="auto", refine={})
     networks = [Network("object", 768, stuck, draft=Network("object", 384, stuck, "draft"))]
     answer = asyncio.run(registration.register_clouds(source, source @ truth.T, options, settings, networks))
-    assert asked == [384, 384]
+    assert asked == [384] * (2 + len(registration.STARTS))  # the flip matches under 0.85: the starts judge too
     assert (answer.stage, answer.verified) == ("multistart", True), answer.reason
     assert rotation_angle_deg(answer.rotation, truth) < 0.01
 
@@ -353,6 +353,43 @@ def test_a_draft_answer_at_the_users_init_is_judged_by_its_half_turns(monkeypatc
     answer = asyncio.run(registration.register_clouds(source, source @ truth.T, options, settings, networks))
     assert (answer.stage, answer.verified) == ("multistart", True), answer.reason
     assert rotation_angle_deg(answer.rotation, truth) < 0.01
+
+
+def test_a_draft_answer_at_the_users_init_matching_little_is_judged_by_the_rotated_starts(monkeypatch):
+    """A pinwheel of three bars with a marker on one: a third of a turn about its axis fits all but
+    the marker. The request's `init` is that turn; the draft, knowing only turns up to 45 deg, stays
+    there and feature matching agrees: verified, matching 0.69 of the source. No half turn is a third
+    of a turn; the rotated starts find the truth, which fits in full and is the answer."""
+    import asyncio
+
+    from conftest import limited_reach, pipeline_inputs
+    from scipy.spatial.transform import Rotation
+
+    from model.geometry import to_matrix
+    from service import registration
+    from service.registration import Network
+
+    rng = np.random.default_rng(3)
+    hub = rng.uniform(-0.5, 0.5, (1500, 2))
+    hub = hub[np.linalg.norm(hub, axis=1) < 0.5]
+    parts = [np.column_stack([hub, np.zeros(len(hub))])]  # a flat disc
+    for k in range(3):  # bars off the axis, each sampled on its own: no mirror, no exact copy
+        turn = Rotation.from_euler("z", 120 * k, degrees=True).as_matrix()
+        parts.append(rng.uniform([0.4, 0.0, 0.0], [1.6, 0.3, 0.4], size=(900, 3)) @ turn.T)
+    parts.append(rng.uniform([1.3, 0.0, 0.4], [1.6, 0.3, 0.9], size=(600, 3)))  # the marker
+    source = np.concatenate(parts)
+    centre = source.mean(axis=0)
+    third = Rotation.from_euler("z", 120, degrees=True).as_matrix()
+    wrong = (third, centre - third @ centre)
+    monkeypatch.setattr(registration, "feature_match", lambda *args: wrong)
+    turns = []
+    options, settings, _ = pipeline_inputs(None, None, method="auto", refine={}, init=to_matrix(*wrong).tolist())
+    draft = Network("object", 384, limited_reach(turns), "draft")
+    networks = [Network("object", 768, limited_reach(turns), draft=draft)]
+    answer = asyncio.run(registration.register_clouds(source, source, options, settings, networks))
+    assert len(turns) == 1 + len(registration.STARTS) and turns[0] > 45.0  # the draft once, then the starts
+    assert (answer.stage, answer.verified) == ("multistart", True), answer.reason
+    assert rotation_angle_deg(answer.rotation, np.eye(3)) < 0.01 and answer.fitness > 0.99
 
 
 def room(rng: np.random.Generator, boxes: list[tuple[float, float]], count: int = 6000) -> np.ndarray:
