@@ -641,11 +641,12 @@ async def _answer(
             )
             if draft is not None and draft.verified and (options.init is not None or _turned(draft, base)):
                 # Asked from the user's guess or at feature matching's turn, either of which may be a
-                # symmetric shape's flipped pose: its half turns judge it and, where it matches little
-                # of the source (room for a third or a quarter of a turn to fit too), the rotated starts.
+                # symmetric shape's flipped pose: its half turns judge it. A user's guess may be any pose
+                # that passes the check, and where it matches little of the source (room for a turn about
+                # another axis to fit as well) the rotated starts judge it too (docs/verification-stress.md).
                 found, cost = await run_blocking(_half_turns, base, draft, first.model, options)
                 costs = [cost]
-                if draft.fitness < SLIDE_FITNESS:
+                if options.init is not None and draft.fitness < SLIDE_FITNESS:
                     rivals, cost = await _judged_by_starts(base, first, [draft], options, run_blocking)
                     found, costs = found + rivals, costs + [cost]
                 return _given_and_charged([draft, *found], options.method, costs)
