@@ -332,7 +332,7 @@ def test_a_draft_answer_at_feature_matchings_turn_is_judged_by_its_half_turns(mo
 def test_a_draft_answer_at_the_users_init_is_judged_by_its_half_turns(monkeypatch):
     """The same box, the request's `init` at its flipped pose: the draft stays there (within its
     reach of `init`) and feature matching agrees. Its half turns still find the truth (the rotated
-    starts, which judge it too, this network stuck, do not)."""
+    starts judge it too, but with this network stuck at every start none lands on the truth)."""
     import asyncio
 
     from conftest import pipeline_inputs
