@@ -36,6 +36,7 @@ from scipy.spatial.transform import Rotation
 from starlette.requests import Request
 
 from model.geometry import (
+    FEATURE_VOXEL_SPACINGS,
     INLIER_SPACINGS,
     MIN_FITNESS,
     REFINE_SPACINGS,
@@ -399,13 +400,13 @@ def _feature_guess(prepared: _Prepared) -> _FeatureGuess:
     """Feature matching (KISS-Matcher), whatever the rotation: a coarse answer."""
     started = time.perf_counter()
     check = prepared.check
+    spacing, spacings = check.spacing, FEATURE_VOXEL_SPACINGS
     if len(prepared.source) > len(check.source) or len(prepared.target) > len(check.target):  # thinned
         spacing = max(
             point_spacing(subset(cloud, FEATURE_SPACING_POINTS)) for cloud in (prepared.source, prepared.target)
         )
-        rotation, translation = feature_match(check.source, check.target, spacing, THINNED_FEATURE_SPACINGS)
-    else:
-        rotation, translation = feature_match(check.source, check.target, check.spacing)
+        spacings = THINNED_FEATURE_SPACINGS
+    rotation, translation = feature_match(check.source, check.target, spacing, spacings)
     return _FeatureGuess(rotation, translation, time.perf_counter() - started)
 
 
