@@ -41,6 +41,7 @@ from model.geometry import (
     MIN_FITNESS,
     REFINE_SPACINGS,
     AlignmentClouds,
+    AlignmentScore,
     FarthestPoints,
     Normalisation,
     Verification,
@@ -183,6 +184,9 @@ class RegistrationResult:
     verified: bool  # the answer passed the check (model.geometry.verify_alignment)
     reason: str | None  # why not, when verified is False
     unpinned: bool  # failed the check on the constraint alone (Verification.unpinned); not in the response
+    # The check's own fit, at its inlier distance whatever the request's fitness_threshold: what answers
+    # are judged and ranked by (a user's distance only changes what is reported). Not in the response.
+    score: AlignmentScore
     stage: "Stage"  # which part of the pipeline gave the answer
     model: str  # whose network gave it (for `features`, the request's first network's)
     points: CloudReports
@@ -364,6 +368,7 @@ def _result(
         verified=chosen.verification.verified,
         reason=chosen.verification.reason,
         unpinned=chosen.verification.unpinned,
+        score=score,
         stage=stage,
         model=model,
         points=prepared.points,
@@ -502,7 +507,7 @@ def _unless_slid(prepared: _Prepared, answer: RegistrationResult, options: Regis
     beside it that fits clearly better and passes the check too, not verified: both pass, and where
     the scene repeats itself (shelves, a corridor) the better fitting one may be the wrong one.
     Charged with the time the search took."""
-    if not answer.verified or answer.fitness >= SLIDE_FITNESS:
+    if not answer.verified or answer.score.fitness >= SLIDE_FITNESS:
         return answer
     started = time.perf_counter()
     check = prepared.check
@@ -521,7 +526,7 @@ def _unless_slid(prepared: _Prepared, answer: RegistrationResult, options: Regis
 
     distances = refine_distances(check.spacing, prepared.normalisation.scale)
     bar = (1.0 + SLIDE_MARGIN) * fit(answer.rotation, answer.translation)
-    best, best_fitness = answer, None  # the check's fitness (a user's threshold may set answer.fitness's)
+    best = answer
     for translation in slides(answer.translation, check.target, SLIDE_SHARES, SLIDE_DIAGONAL_SHARES):
         rotation, translation, _ = small.refine(
             answer.rotation, translation, distances[0], max_iterations=SLIDE_ITERATIONS
@@ -533,12 +538,9 @@ def _unless_slid(prepared: _Prepared, answer: RegistrationResult, options: Regis
         if fit(rotation, translation) <= bar:
             continue
         candidate = _checked(prepared, rotation, translation, options.refine or RefineOptions())
-        if best_fitness is None:
-            best_fitness = check.fitness(check.source, answer.rotation, answer.translation, INLIER_SPACINGS)
         fitness = candidate.verification.score.fitness
-        if candidate.verification.verified and fitness > (1.0 + SLIDE_MARGIN) * best_fitness:
+        if candidate.verification.verified and fitness > (1.0 + SLIDE_MARGIN) * best.score.fitness:
             best = _result(prepared, candidate, answer.stage, answer.model, options, dict(answer.timings_ms))
-            best_fitness = fitness
     best.timings_ms["postprocess_ms"] += (time.perf_counter() - started) * 1000.0
     if best is answer:
         return answer
@@ -553,7 +555,7 @@ _FREE = _FREE_MODEL | {"postprocess_ms": 0.0}  # the timings of a candidate whos
 
 def _rank(answer: RegistrationResult) -> tuple[bool, float]:
     """Which answer to give: a verified one first, then the best fitting."""
-    return answer.verified, answer.fitness
+    return answer.verified, answer.score.fitness
 
 
 def _model_timings(predictions: list[Prediction]) -> dict[str, float]:
@@ -647,7 +649,7 @@ async def _answer(
                 # another axis to fit as well) the rotated starts judge it too (docs/verification-stress.md).
                 found, cost = await run_blocking(_half_turns, base, draft, first.model, options)
                 costs = [cost]
-                if options.init is not None and draft.fitness < SLIDE_FITNESS:
+                if options.init is not None and draft.score.fitness < SLIDE_FITNESS:
                     rivals, cost = await _judged_by_starts(base, first, [draft], options, run_blocking)
                     found, costs = found + rivals, costs + [cost]
                 return _given_and_charged([draft, *found], options.method, costs)
@@ -809,7 +811,7 @@ def _given(answers: list[RegistrationResult], method: str) -> RegistrationResult
     best = answers[0] if method == "ifnet" else max(answers, key=_rank)
     judged = _unless_contradicted(best, answers)
     if best.verified and not judged.verified and method != "ifnet":
-        fittest = max(answers, key=lambda answer: answer.fitness)
+        fittest = max(answers, key=lambda answer: answer.score.fitness)
         judged = dataclasses.replace(fittest, verified=False, reason=judged.reason)
     return judged
 
@@ -843,7 +845,8 @@ def _tighter(answer: RegistrationResult, other: RegistrationResult) -> bool:
     """`answer` fits at least as well as `other`, its inliers much nearer the surface: those of a right
     answer lie within the sampling gap and the noise, those of a wrong pose anywhere within the
     inlier distance (measured in service/README.md, "POST /register")."""
-    return answer.fitness >= other.fitness and answer.inlier_rmse < RIVAL_RMSE_SHARE * other.inlier_rmse
+    ours, theirs = answer.score, other.score
+    return ours.fitness >= theirs.fitness and ours.inlier_rmse < RIVAL_RMSE_SHARE * theirs.inlier_rmse
 
 
 def _unless_contradicted(best: RegistrationResult, answers: list[RegistrationResult]) -> RegistrationResult:
@@ -856,7 +859,8 @@ def _unless_contradicted(best: RegistrationResult, answers: list[RegistrationRes
     rivals = [
         other
         for other in answers
-        if (other.verified and not _tighter(best, other)) or other.fitness >= best.fitness - RIVAL_FITNESS_MARGIN
+        if (other.verified and not _tighter(best, other))
+        or other.score.fitness >= best.score.fitness - RIVAL_FITNESS_MARGIN
     ]
     apart = max(float(rotation_angle_deg(best.rotation, other.rotation)) for other in rivals)
     if apart <= AGREEMENT_DEG:

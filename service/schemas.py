@@ -160,7 +160,8 @@ class RegistrationOptions(BaseModel):
         gt=0,
         strict=True,
         allow_inf_nan=False,
-        description="Inlier distance for `fitness` and `inlier_rmse`, your units (default as ICP's).",
+        description="Inlier distance of the reported `fitness` and `inlier_rmse`, your units (default 1.5 point "
+        "spacings); the check and the choice of answer keep their own.",
     )
 
     @field_validator("refine", mode="before")

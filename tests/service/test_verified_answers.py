@@ -1,6 +1,7 @@
 """Right or flagged: every answer says whether it passed the check (`verified`, `reason`) and
 which stage gave it; `auto` falls back to the global search, which handles any rotation."""
 
+import dataclasses
 import io
 from pathlib import Path
 
@@ -200,19 +201,24 @@ def box_answer():
     return _finish_multistart(prepared, [Prediction(np.eye(3), np.zeros(3))] * 24, "object", options)[0][0]
 
 
+def fitted(result, **changes):
+    """The result with `changes`; a fitness or inlier_rmse among them is the check's own too (as
+    without a fitness_threshold of the request's), which answers are judged by."""
+    score = {name: changes[name] for name in ("fitness", "inlier_rmse") if name in changes}
+    return dataclasses.replace(result, **changes, score=result.score._replace(**score))
+
+
 def test_an_unverified_answer_that_fits_as_well_also_contradicts():
     """A near-symmetric shape: one answer slides (unverified), another 30 degrees away passes the
     check; the two fit about as well, so the second is not verified either. A poorer fit does not
     contradict."""
-    import dataclasses
-
     from service.registration import _unless_contradicted
 
     result = box_answer()
-    answer = dataclasses.replace(result, rotation=np.eye(3), verified=True, reason=None, fitness=0.72)
+    answer = fitted(result, rotation=np.eye(3), verified=True, reason=None, fitness=0.72)
     turned = euler_to_matrix([30.0, 0.0, 0.0])
-    sliding = dataclasses.replace(result, rotation=turned, verified=False, reason="slides", fitness=0.70)
-    poorer = dataclasses.replace(sliding, fitness=0.40)
+    sliding = fitted(result, rotation=turned, verified=False, reason="slides", fitness=0.70)
+    poorer = fitted(sliding, fitness=0.40)
 
     flagged = _unless_contradicted(answer, [answer, sliding])
     assert flagged.verified is False and flagged.reason.startswith("ambiguous")
@@ -223,16 +229,12 @@ def test_a_contradicted_answer_gives_way_to_the_best_fitting_one():
     """A start verified at fitness 0.725 and the network's unverified answer 30 degrees away at
     0.934 (a shape the check cannot pin down): nothing stands verified, so `auto` gives the better
     fitting answer, flagged; `ifnet` gives the network's answer whatever else fits."""
-    import dataclasses
-
     from service.registration import _given
 
     result = box_answer()
     turned = euler_to_matrix([30.0, 0.0, 0.0])
-    network = dataclasses.replace(
-        result, rotation=turned, verified=False, reason="slides", fitness=0.934, stage="ifnet"
-    )
-    start = dataclasses.replace(result, rotation=np.eye(3), verified=True, reason=None, fitness=0.725)
+    network = fitted(result, rotation=turned, verified=False, reason="slides", fitness=0.934, stage="ifnet")
+    start = fitted(result, rotation=np.eye(3), verified=True, reason=None, fitness=0.725)
 
     given = _given([network, start], "auto")
     assert (given.stage, given.fitness, given.verified) == ("ifnet", 0.934, False)
@@ -273,16 +275,14 @@ def test_a_verified_rival_that_fits_worse_with_looser_inliers_does_not_contradic
     """A wrong pose can pass the check on chance inliers, spread across the inlier distance; a right
     answer's lie near the surfaces. A verified rival that fits no better, with inlier residuals 1.25x
     the answer's or more, does not contradict it; one about as tight does."""
-    import dataclasses
-
     from service.registration import _unless_contradicted
 
     result = box_answer()
-    answer = dataclasses.replace(result, rotation=np.eye(3), verified=True, reason=None, fitness=0.95, inlier_rmse=0.2)
+    answer = fitted(result, rotation=np.eye(3), verified=True, reason=None, fitness=0.95, inlier_rmse=0.2)
     flip = euler_to_matrix([180.0, 0.0, 0.0])
-    loose = dataclasses.replace(answer, rotation=flip, fitness=0.6, inlier_rmse=0.5)
-    as_tight = dataclasses.replace(loose, inlier_rmse=0.22)
-    fitting_better = dataclasses.replace(loose, fitness=0.96)
+    loose = fitted(answer, rotation=flip, fitness=0.6, inlier_rmse=0.5)
+    as_tight = fitted(loose, inlier_rmse=0.22)
+    fitting_better = fitted(loose, fitness=0.96)
 
     assert _unless_contradicted(answer, [answer, loose]).verified is True
     for rival in (as_tight, fitting_better):
@@ -527,6 +527,27 @@ def test_a_verified_pose_slid_beside_the_truth_gives_way_to_it_flagged():
     assert np.linalg.norm(answer.translation - translation) < 0.01 * extent
     assert rotation_angle_deg(answer.rotation, rotation) < 0.5 and answer.fitness > 1.5 * slid.fitness
     assert answer.timings_ms["postprocess_ms"] > slid.timings_ms["postprocess_ms"]
+
+
+@pytest.mark.parametrize("threshold", [1e-4, 10.0], ids=["tiny", "huge"])
+def test_a_users_fitness_threshold_changes_what_is_reported_not_the_verdict(threshold):
+    """The request's fitness_threshold sets the reported fitness only: the slid pose of the sample pair
+    is still looked beside and flagged (at 10 units every pose would match the whole source, and
+    an answer matching 0.85 or more is not looked beside), and the truth still stands."""
+    from service import registration
+
+    source, target, truth = sample_pair(turned=False)
+    prepared, default = prepared_pair(source, target)
+    own = default.model_copy(update={"fitness_threshold": threshold})
+    rotation, translation = from_matrix(truth)
+    for options in (default, own):
+        slid, _ = slid_sample(prepared, options, rotation, translation)
+        right = checked_answer(prepared, options, rotation, translation)
+        judged = registration._unless_slid(prepared, slid, options)
+        assert not judged.verified and judged.reason.startswith("ambiguous: a pose"), options.fitness_threshold
+        assert registration._unless_slid(prepared, right, options) is right and right.verified
+        assert registration._given([slid, right], "auto").translation is right.translation
+    assert slid.fitness_threshold == threshold and slid.fitness in (0.0, 1.0)  # reported at the user's distance
 
 
 def test_on_evenly_spaced_shelves_the_right_answer_is_flagged_ambiguous():
