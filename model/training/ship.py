@@ -66,6 +66,17 @@ def pair_noise(args: dict) -> str:
     return ", ".join(noise)
 
 
+def earlier_training(args: dict) -> dict | None:
+    """The record of the shipped weights a run was fine-tuned from, where they carry one: a later leg
+    of training keeps the history of the legs before it (its weights may replace the earlier ones)."""
+    init = args.get("init_weights")
+    record = Path(init).with_suffix(".json") if init else None
+    if record is None or not record.is_file():
+        return None
+    earlier = json.loads(record.read_text())
+    return {name: earlier[name] for name in ("file", "sha256", "training", "date") if name in earlier}
+
+
 def read_checkpoint(checkpoint: Path) -> dict:
     state = load_torch_file(checkpoint, "--checkpoint")
     if not {"model", "config", "args", "step"} <= set(state):
@@ -78,6 +89,7 @@ def read_checkpoint(checkpoint: Path) -> dict:
 
 def ship(state: dict, checkpoint: Path, weights: Path) -> dict:
     preset_name = weights_preset(state)
+    earlier = earlier_training(state["args"])  # read before the weights (perhaps the same file) are replaced
     weights.parent.mkdir(parents=True, exist_ok=True)
     torch.save({"model": state["model"], "config": state["config"], "preset": preset_name}, weights)
     log_path = checkpoint.parent / "log.csv"
@@ -104,7 +116,8 @@ def ship(state: dict, checkpoint: Path, weights: Path) -> dict:
             "seed": state["args"]["seed"],
             "hours_on_2_cpu_cores": round(float(rows[-1]["seconds"]) / 3600, 2) if rows else None,
             "final_validation_rotation_deg": float(validations[-1]["val_rotation_deg"]) if validations else None,
-        },
+        }
+        | ({"fine_tuned_from": earlier} if earlier else {}),
         "date": dt.date.today().isoformat(),
     }
 

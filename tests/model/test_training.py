@@ -203,6 +203,25 @@ def test_training_with_a_teacher_logs_its_consistency_loss(tmp_path, shapes):
     assert all(float(r["teacher_consistency"]) > 0.01 for r in rows), rows
 
 
+def test_a_later_leg_of_training_keeps_the_record_of_the_weights_it_started_from(tmp_path):
+    """Shipping a run fine-tuned from shipped weights into the same file keeps their record inside the
+    new one: the earlier legs' steps and hours are not lost."""
+    import json
+
+    from model.training.ship import ship
+
+    weights = tmp_path / "ifnet-indoor.pt"
+    network = save_random_network(weights, seed=3)
+    earlier = {"file": weights.name, "sha256": "ab", "training": {"steps": 405, "hours_on_2_cpu_cores": 1.14}}
+    weights.with_suffix(".json").write_text(json.dumps(earlier))
+    args = {"init_weights": str(weights), "batch_size": 4, "lr": 3e-4, "schedule": "cosine", "seed": 1}
+    state = {"model": network.state_dict(), "config": network.config.to_dict(), "args": args, "step": 900}
+    record = ship(state, tmp_path / "run" / "checkpoint.pt", weights)
+    assert record["training"]["steps"] == 900 and record["training"]["fine_tuned_from"] == earlier
+    assert f"fine-tuned from {weights}" in record["training"]["data"]
+    assert "fine_tuned_from" not in ship(state | {"args": args | {"init_weights": None}}, weights, weights)["training"]
+
+
 def test_the_shipped_record_names_the_training_objective():
     from model.training.ship import training_objective
 
