@@ -96,6 +96,15 @@ async def test_user_thresholds_reach_the_pipeline_and_are_echoed(serve, tiny_mod
     assert 1 <= chosen["refinement"]["iterations"] <= 3
 
 
+async def test_a_users_fitness_threshold_changes_the_reported_fit_only(serve, tiny_model):
+    async with serve(settings_for(tiny_model)) as (app, client):
+        default = (await client.post("/register", json=body(method="auto"))).json()
+        own = (await client.post("/register", json=body(method="auto", fitness_threshold=100.0))).json()
+    assert own["fitness"] == 1.0 and own["fitness_threshold"] == 100.0
+    for name in ("transform", "verified", "reason", "stage"):
+        assert own[name] == default[name], name
+
+
 async def test_duplicates_are_removed_and_counted(serve, tiny_model):
     source = np.concatenate([SOURCE, SOURCE[:30]])
     async with serve(settings_for(tiny_model)) as (app, client):
