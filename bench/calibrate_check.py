@@ -314,7 +314,47 @@ def table(rows: list[dict]) -> list[dict]:
     return summary
 
 
-def markdown(summary: list[dict], command: str, seconds: float) -> str:
+def rmse_shares(rows: list[dict]) -> dict:
+    """How far from the surfaces the inliers of verified answers lie, per set: their RMSE as a share of
+    the inlier distance, right and wrong, and the wrong ones above the largest of any right one."""
+
+    def share(row: dict) -> float:
+        return row["inlier_rmse"] / row["threshold"]
+
+    verified = [row for row in rows if row["verified"]]
+    largest_right = max((share(row) for row in verified if row["right"]), default=0.0)
+    per_set = {}
+    for set_name in dict.fromkeys(row["set"] for row in rows):
+        mine = [row for row in verified if row["set"] == set_name]
+        right, wrong = ([share(row) for row in mine if row["right"] == kind] for kind in (True, False))
+        per_set[set_name] = {
+            "right": [float(np.median(right)), max(right)] if right else None,
+            "wrong": [min(wrong), float(np.median(wrong))] if wrong else None,
+            "wrong_above": sum(value > largest_right for value in wrong),
+            "wrong_verified": len(wrong),
+        }
+    return {"largest_right": largest_right, "sets": per_set}
+
+
+def rmse_markdown(shares: dict) -> list[str]:
+    """The table of rmse_shares."""
+    lines = [
+        "",
+        "Inlier RMSE as a share of the inlier distance, of the answers the check verifies (a right answer's "
+        "inliers lie within the sampling gap and the noise, a wrong pose's anywhere within the distance; not "
+        f"a rule of the check). Last column: wrong ones above the largest of any right one "
+        f"({shares['largest_right']:.3f}).",
+        "",
+        "| set | right verified: median / max | wrong verified: min / median | wrong verified above it |",
+        "|---|---:|---:|---:|",
+    ]
+    for set_name, row in shares["sets"].items():
+        right, wrong = (f"{row[kind][0]:.3f} / {row[kind][1]:.3f}" if row[kind] else "-" for kind in ("right", "wrong"))
+        lines.append(f"| {set_name} | {right} | {wrong} | {row['wrong_above']} / {row['wrong_verified']} |")
+    return lines
+
+
+def markdown(summary: list[dict], shares: dict, command: str, seconds: float) -> str:
     lines = [
         "# Verification check: calibration",
         "",
@@ -354,7 +394,7 @@ def markdown(summary: list[dict], command: str, seconds: float) -> str:
             f"{row['slid_wrong_verified']} | {row['turned_wrong_verified']} | {row['wrong_answer_verified']} | "
             f"{row['as_init_right']} / {row['as_init_flagged']} | **{row['as_init_wrong verified']}** | {kinds} |"
         )
-    return "\n".join(lines) + "\n"
+    return "\n".join(lines + rmse_markdown(shares)) + "\n"
 
 
 def refinement_markdown(results: list[dict], command: str, seconds: float) -> str:
@@ -411,11 +451,11 @@ def main(argv: list[str] | None = None) -> None:
         return
     with harness.Service() as service, httpx.Client(base_url=service.url, timeout=600, trust_env=False) as client:
         rows = evaluate(sets, network, args.perturbations, args.seed, client)
-    summary = table(rows)
+    summary, shares = table(rows), rmse_shares(rows)
     seconds = time.perf_counter() - started
-    text = markdown(summary, command.strip(), seconds)
+    text = markdown(summary, shares, command.strip(), seconds)
     print(text)
-    write(args.out, text, {"command": command, "seconds": seconds, "sets": summary})
+    write(args.out, text, {"command": command, "seconds": seconds, "sets": summary, "rmse_shares": shares})
 
 
 def write(stem: Path, text: str, data: dict) -> None:

@@ -89,7 +89,7 @@ def read_checkpoint(checkpoint: Path) -> dict:
 
 def ship(state: dict, checkpoint: Path, weights: Path) -> dict:
     preset_name = weights_preset(state)
-    earlier = earlier_training(state["args"])  # read before the weights (perhaps the same file) are replaced
+    earlier = earlier_training(state["args"])
     weights.parent.mkdir(parents=True, exist_ok=True)
     torch.save({"model": state["model"], "config": state["config"], "preset": preset_name}, weights)
     log_path = checkpoint.parent / "log.csv"
