@@ -10,8 +10,7 @@ from pathlib import Path
 import torch
 
 from model.checkpoint import load_checkpoint
-from model.training.data import DEFAULT_DATA_DIR
-from model.training.train import scene_pairs, validate
+from model.training.train import parse_args, scene_pairs, validate
 
 
 def main() -> None:
@@ -22,9 +21,7 @@ def main() -> None:
     args = parser.parse_args()
     torch.set_num_threads(1)
     model = load_checkpoint(args.weights).model
-    run = argparse.Namespace(
-        noise=["clean"], domain=args.domain, data_dir=DEFAULT_DATA_DIR, max_shapes=0, seed=args.seed
-    )
+    run = parse_args(["--domain", args.domain, "--seed", str(args.seed)])  # the run's defaults, as it built them
     _, validation = scene_pairs(run, model.config)
     print(f"{args.weights}: {validate(model, validation['val_rotation_deg'], 'cpu', 4):.2f} deg")
 
