@@ -1,5 +1,6 @@
 """Reading IFNet weights: shipped weights files and training checkpoints, with their checksum and preset."""
 
+import json
 from dataclasses import replace
 from pathlib import Path
 from typing import NamedTuple
@@ -16,6 +17,16 @@ def read_weights(path: Path, what: str) -> dict:
     if "model" not in state or "config" not in state:
         raise UserError(f"{what} {path}: not IFNet weights or a training checkpoint (no model state and config)")
     return state
+
+
+def shipped_record(weights: str | Path | None) -> dict | None:
+    """The training record shipped beside `weights` (its .json), as a later leg keeps it: file, sha256,
+    training and date; None where there is none."""
+    record = Path(weights).with_suffix(".json") if weights else None
+    if record is None or not record.is_file():
+        return None
+    shipped = json.loads(record.read_text())
+    return {name: shipped[name] for name in ("file", "sha256", "training", "date") if name in shipped}
 
 
 def weights_preset(state: dict) -> str:

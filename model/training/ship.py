@@ -18,7 +18,7 @@ from pathlib import Path
 import torch
 
 from model.artifacts import DEFAULT_WEIGHTS, file_sha256
-from model.checkpoint import weights_preset
+from model.checkpoint import shipped_record, weights_preset
 from model.cli import UserError, load_torch_file, reports_user_errors
 from model.training.scenes import HELD_OUT_SCENES, SCAN_FILES
 
@@ -66,15 +66,15 @@ def pair_noise(args: dict) -> str:
     return ", ".join(noise)
 
 
-def earlier_training(args: dict) -> dict | None:
-    """The record of the shipped weights a run was fine-tuned from, where they carry one: a later leg
-    of training keeps the history of the legs before it (its weights may replace the earlier ones)."""
-    init = args.get("init_weights")
-    record = Path(init).with_suffix(".json") if init else None
-    if record is None or not record.is_file():
-        return None
-    earlier = json.loads(record.read_text())
-    return {name: earlier[name] for name in ("file", "sha256", "training", "date") if name in earlier}
+def earlier_training(state: dict) -> dict | None:
+    """The record of the shipped weights a run was fine-tuned from: a later leg of training keeps the
+    history of the legs before it (its weights may replace the earlier ones). Read when the run
+    started (train keeps it in the checkpoint), since a leg resumed after shipping over its
+    starting weights would find their place holding its own earlier record; checkpoints from
+    before that read it from beside the weights now."""
+    if "fine_tuned_from" in state:
+        return state["fine_tuned_from"]
+    return shipped_record(state["args"].get("init_weights"))
 
 
 def read_checkpoint(checkpoint: Path) -> dict:
@@ -89,7 +89,7 @@ def read_checkpoint(checkpoint: Path) -> dict:
 
 def ship(state: dict, checkpoint: Path, weights: Path) -> dict:
     preset_name = weights_preset(state)
-    earlier = earlier_training(state["args"])
+    earlier = earlier_training(state)
     weights.parent.mkdir(parents=True, exist_ok=True)
     torch.save({"model": state["model"], "config": state["config"], "preset": preset_name}, weights)
     log_path = checkpoint.parent / "log.csv"

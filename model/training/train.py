@@ -23,7 +23,7 @@ from scipy.spatial import cKDTree
 from torch.utils.data import DataLoader, Subset
 from tqdm import tqdm
 
-from model.checkpoint import load_checkpoint, read_weights
+from model.checkpoint import load_checkpoint, read_weights, shipped_record
 from model.cli import (
     UserError,
     load_torch_file,
@@ -286,8 +286,12 @@ def validate(model: IFNet, pairs: RegistrationPairs, device: str, batch_size: in
     return float(np.concatenate(errors).mean())
 
 
-def save_checkpoint(path: Path, model: IFNet, optimizer: torch.optim.Optimizer, step: int, args: argparse.Namespace):
-    state = {
+def save_checkpoint(
+    path: Path, model: IFNet, optimizer: torch.optim.Optimizer, step: int, args: argparse.Namespace, origin: dict
+):
+    """`origin`: {"fine_tuned_from": record} of the weights the run started from, read at its start
+    (ship keeps it in the shipped record); empty for a run resumed from a checkpoint without it."""
+    state = origin | {
         "model": model.state_dict(),
         "config": model.config.to_dict(),
         "preset": args.preset,
@@ -384,7 +388,9 @@ def train(args: argparse.Namespace) -> Path:
     teacher_blocks = slice(n - 1, None, n) if args.teacher_blocks == "last" else slice(None)
     optimizer = torch.optim.Adam(model.parameters(), lr=args.lr)
     step, seconds_before = 0, 0.0
+    origin = {"fine_tuned_from": shipped_record(args.init_weights)}
     if resumed is not None:
+        origin = {key: resumed[key] for key in origin if key in resumed}
         model.load_state_dict(resumed["model"])
         optimizer.load_state_dict(resumed["optimizer"])
         step = resumed["step"]
@@ -459,7 +465,7 @@ def train(args: argparse.Namespace) -> Path:
                         row[column] = f"{validate(model, pairs, args.device, args.batch_size):.4f}"
                     errors = ", ".join(f"{row[column]} deg ({column})" for column in validation)
                     progress.write(f"step {step}: validation rotation error {errors}")
-                    save_checkpoint(checkpoint_path, model, optimizer, step, args)
+                    save_checkpoint(checkpoint_path, model, optimizer, step, args, origin)
                 log.writerow(row)
                 log_file.flush()
                 if row["val_rotation_deg"]:

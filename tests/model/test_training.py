@@ -222,6 +222,26 @@ def test_a_later_leg_of_training_keeps_the_record_of_the_weights_it_started_from
     assert "fine_tuned_from" not in ship(state | {"args": args | {"init_weights": None}}, weights, weights)["training"]
 
 
+def test_a_leg_resumed_after_shipping_over_its_starting_weights_keeps_their_record(tmp_path, shapes):
+    """Train from shipped weights, ship the run over them, then resume it for more steps and ship
+    again: the record keeps the weights the run started from, not the run's own first shipment."""
+    import json
+
+    from model.training.ship import main as ship_main
+
+    weights = tmp_path / "ifnet-indoor.pt"
+    save_random_network(weights, seed=3)
+    started_from = {"file": weights.name, "sha256": "ab", "training": {"steps": 405}, "date": "2026-12-03"}
+    weights.with_suffix(".json").write_text(json.dumps(started_from))
+    checkpoint = tmp_path / "run" / "checkpoint.pt"
+    for steps in ("1", "2"):
+        train_briefly(tmp_path, shapes, "--max-steps", steps, "--init-weights", str(weights))
+        ship_main(["--checkpoint", str(checkpoint), "--weights", str(weights)])
+        record = json.loads(weights.with_suffix(".json").read_text())
+        assert record["training"]["steps"] == int(steps)
+        assert record["training"]["fine_tuned_from"] == started_from, steps
+
+
 def test_the_shipped_record_names_the_training_objective():
     from model.training.ship import training_objective
 
