@@ -68,10 +68,8 @@ def pair_noise(args: dict) -> str:
 
 def earlier_training(state: dict) -> dict | None:
     """The record of the shipped weights a run was fine-tuned from: a later leg of training keeps the
-    history of the legs before it (its weights may replace the earlier ones). Read when the run
-    started (train keeps it in the checkpoint), since a leg resumed after shipping over its
-    starting weights would find their place holding its own earlier record; checkpoints from
-    before that read it from beside the weights now."""
+    history of the legs before it (its weights may replace the earlier ones). train keeps it in the
+    checkpoint from the run's start; for older checkpoints it is read from beside the weights."""
     if "fine_tuned_from" in state:
         return state["fine_tuned_from"]
     return shipped_record(state["args"].get("init_weights"))
@@ -89,7 +87,7 @@ def read_checkpoint(checkpoint: Path) -> dict:
 
 def ship(state: dict, checkpoint: Path, weights: Path) -> dict:
     preset_name = weights_preset(state)
-    earlier = earlier_training(state)
+    earlier = earlier_training(state)  # read before the weights (perhaps the same file) are replaced
     weights.parent.mkdir(parents=True, exist_ok=True)
     torch.save({"model": state["model"], "config": state["config"], "preset": preset_name}, weights)
     log_path = checkpoint.parent / "log.csv"

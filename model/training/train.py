@@ -388,9 +388,8 @@ def train(args: argparse.Namespace) -> Path:
     teacher_blocks = slice(n - 1, None, n) if args.teacher_blocks == "last" else slice(None)
     optimizer = torch.optim.Adam(model.parameters(), lr=args.lr)
     step, seconds_before = 0, 0.0
-    origin = {"fine_tuned_from": shipped_record(args.init_weights)}
     if resumed is not None:
-        origin = {key: resumed[key] for key in origin if key in resumed}
+        origin = {key: resumed[key] for key in ("fine_tuned_from",) if key in resumed}
         model.load_state_dict(resumed["model"])
         optimizer.load_state_dict(resumed["optimizer"])
         step = resumed["step"]
@@ -399,6 +398,8 @@ def train(args: argparse.Namespace) -> Path:
         if changed := changed_options(resumed.get("args", {}), args):
             print("options differ from the checkpoint's; training continues with the new ones: " + ", ".join(changed))
     else:
+        # Read now: shipping this run over its starting weights would replace their record.
+        origin = {"fine_tuned_from": shipped_record(args.init_weights)}
         if args.init_weights:
             load_weights_into(model, args.init_weights, "--init-weights")
         log_path.write_text(",".join(LOG_FIELDS) + "\n")
