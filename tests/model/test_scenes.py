@@ -8,6 +8,7 @@ import pytest
 torch = pytest.importorskip("torch", reason="the training tests need torch")
 
 from scipy.spatial import cKDTree  # noqa: E402
+from scipy.spatial.transform import Rotation  # noqa: E402
 
 from model.geometry import (  # noqa: E402
     NETWORK_RADIUS,
@@ -29,7 +30,7 @@ from model.training.scenes import (  # noqa: E402
     teacher_view,
 )
 from model.training.train import main as train_main  # noqa: E402
-from model.training.train import taught_transform  # noqa: E402
+from model.training.train import shared_points_coincide, taught_transform  # noqa: E402
 
 
 def room(rng: np.random.Generator, points: int = 6000) -> np.ndarray:
@@ -82,6 +83,25 @@ def test_a_polished_teacher_is_exact_and_a_wrong_one_is_dropped():
     assert taught.tolist() == [1.0, 0.0]
     error = rotation_angle_deg(rotation[0].double().numpy(), batch["rotation"][0].double().numpy())
     assert error < 0.05
+
+
+def test_a_teachers_pose_a_fifth_of_a_degree_off_still_teaches_and_one_degrees_off_does_not():
+    """GICP polishes a right teacher's pose to within ~0.15 deg, not exactly: that still teaches
+    (a student a few degrees off gains from it); a pose degrees off does not."""
+    rng = np.random.default_rng(5)
+    pair = make_scan_pair(room(rng), PROTOCOLS["indoor"], rng)
+    source, target = teacher_view(pair, 768, PROTOCOLS["indoor"])
+    moved = apply_transform(source, pair["rotation"], pair["translation"])
+    centre = moved.mean(axis=0)
+
+    def off_by(degrees: float) -> np.ndarray:
+        axis = np.array([1.0, 2.0, 3.0]) / np.sqrt(14.0)
+        return (moved - centre) @ Rotation.from_rotvec(np.radians(degrees) * axis).as_matrix().T + centre
+
+    distances, _ = cKDTree(target).query(moved)
+    assert np.mean(distances < 1e-9) > 0.3  # the truth: the shared points coincide exactly
+    assert shared_points_coincide(off_by(0.2), target)
+    assert not shared_points_coincide(off_by(3.0), target)
 
 
 def test_voxel_downsampling_keeps_one_centroid_per_occupied_cell():
