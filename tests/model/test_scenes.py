@@ -85,7 +85,7 @@ def test_a_polished_teacher_is_exact_and_a_wrong_one_is_dropped():
     assert error < 0.05
 
 
-def test_a_teachers_pose_a_fifth_of_a_degree_off_still_teaches_and_one_degrees_off_does_not():
+def test_a_teachers_pose_a_fifth_of_a_degree_off_still_teaches_and_one_three_degrees_off_does_not():
     """GICP polishes a right teacher's pose to within ~0.15 deg, not exactly: that still teaches
     (a student a few degrees off gains from it); a pose degrees off does not."""
     rng = np.random.default_rng(5)
