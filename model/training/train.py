@@ -268,9 +268,14 @@ def taught_transform(
 COINCIDENT_SPACINGS, MIN_COINCIDENT_SHARE = 0.1, 0.2
 
 
-def shared_points_coincide(moved: np.ndarray, target: np.ndarray) -> bool:
+def coincident_share(moved: np.ndarray, target: np.ndarray, spacings: float = COINCIDENT_SPACINGS) -> float:
+    """Share of the moved points within `spacings` of the target's point spacing of a target point."""
     distances, _ = cKDTree(target).query(moved)
-    return bool(np.mean(distances < COINCIDENT_SPACINGS * point_spacing(target)) >= MIN_COINCIDENT_SHARE)
+    return float(np.mean(distances < spacings * point_spacing(target)))
+
+
+def shared_points_coincide(moved: np.ndarray, target: np.ndarray) -> bool:
+    return coincident_share(moved, target) >= MIN_COINCIDENT_SHARE
 
 
 @torch.no_grad()
@@ -389,7 +394,7 @@ def train(args: argparse.Namespace) -> Path:
     optimizer = torch.optim.Adam(model.parameters(), lr=args.lr)
     step, seconds_before = 0, 0.0
     if resumed is not None:
-        origin = {key: resumed[key] for key in ("fine_tuned_from",) if key in resumed}
+        origin = {"fine_tuned_from": resumed["fine_tuned_from"]} if "fine_tuned_from" in resumed else {}
         model.load_state_dict(resumed["model"])
         optimizer.load_state_dict(resumed["optimizer"])
         step = resumed["step"]

@@ -1,6 +1,7 @@
 """The data pipeline, a tiny training run with checkpoint and resume, and the shipped weights."""
 
 import csv
+import json
 import os
 
 import numpy as np
@@ -206,8 +207,6 @@ def test_training_with_a_teacher_logs_its_consistency_loss(tmp_path, shapes):
 def test_a_later_leg_of_training_keeps_the_record_of_the_weights_it_started_from(tmp_path):
     """Shipping a run fine-tuned from shipped weights into the same file keeps their record inside the
     new one: the earlier legs' steps and hours are not lost."""
-    import json
-
     from model.training.ship import ship
 
     weights = tmp_path / "ifnet-indoor.pt"
@@ -225,8 +224,6 @@ def test_a_later_leg_of_training_keeps_the_record_of_the_weights_it_started_from
 def test_a_leg_resumed_after_shipping_over_its_starting_weights_keeps_their_record(tmp_path, shapes):
     """Train from shipped weights, ship the run over them, then resume it for more steps and ship
     again: the record keeps the weights the run started from, not the run's own first shipment."""
-    import json
-
     from model.training.ship import main as ship_main
 
     weights = tmp_path / "ifnet-indoor.pt"

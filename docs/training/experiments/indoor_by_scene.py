@@ -11,6 +11,7 @@ from pathlib import Path
 import numpy as np
 
 from bench import harness
+from model.training.scenes import scene_of
 
 FAR_DEG = 10.0
 
@@ -27,7 +28,7 @@ def main() -> None:
             feeds, normalisation = network.prepare(pair.source, pair.target)
             answer = network.to_user_units(normalisation, *network.call(feeds))
             errors.append(harness.errors(pair, *answer)["rotation_deg"])
-        by_scene[pair.name.split("/")[1].split("__")[1]].append(errors)
+        by_scene[scene_of(pair.name.split("/")[1])].append(errors)
     print(f"rotation error alone, deg: mean per file, then pairs over {FAR_DEG:g} deg per file")
     for scene, rows in sorted(by_scene.items(), key=lambda item: -np.mean([row[0] for row in item[1]])):
         errors = np.array(rows)

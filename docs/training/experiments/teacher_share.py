@@ -1,7 +1,7 @@
 """Which scene training pairs a polished teacher teaches, and how far off its pose is.
 
-For each pair: the teacher's estimate on the pair's shared-point version, polished by GICP (as
-`model.training.train.taught_transform` does), its rotation error against the pair's motion, and
+For each pair: the teacher's estimate on the pair's shared-point version, polished by GICP as in training
+(`model.training.train.taught_transform`), its rotation error against the pair's motion, and
 the share of source points within 0.01 / 0.05 / 0.1 / 0.2 point spacings of a target point. Then,
 for each spacing, how many pairs would teach (share >= MIN_COINCIDENT_SHARE) and the worst error
 among them.
@@ -15,30 +15,25 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from scipy.spatial import cKDTree
 from torch.utils.data import DataLoader
 
-from model.geometry import apply_transform, point_spacing, refine, rotation_angle_deg
+from model.geometry import apply_transform, rotation_angle_deg
 from model.training.scenes import PROTOCOLS, ScanPairs, load_scans
-from model.training.train import MIN_COINCIDENT_SHARE, load_teacher
+from model.training.train import MIN_COINCIDENT_SHARE, coincident_share, load_teacher, taught_transform
 
 SPACINGS = (0.01, 0.05, 0.1, 0.2)
 
 
-@torch.no_grad()
 def polished(teacher: torch.nn.Module, batch: dict[str, torch.Tensor]) -> list[tuple[float, list[float]]]:
     """(rotation error in degrees, share within each of SPACINGS) per pair of the batch."""
-    out = teacher(batch["noise_free_source"], batch["noise_free_target"])
+    rotations, translations, _ = (poses.double().numpy() for poses in taught_transform(teacher, batch, "cpu", True))
     rows = []
-    for i in range(len(out.rotation)):
+    for i, (rotation, translation) in enumerate(zip(rotations, translations, strict=True)):
         source = batch["noise_free_source"][i].double().numpy()
         target = batch["noise_free_target"][i].double().numpy()
-        rotation, translation = out.rotation[i].double().numpy(), out.translation[i].double().numpy()
-        rotation, translation, _ = refine(source, target, rotation, translation)
-        distances, _ = cKDTree(target).query(apply_transform(source, rotation, translation))
-        spacing = point_spacing(target)
+        moved = apply_transform(source, rotation, translation)
         error = float(rotation_angle_deg(rotation, batch["rotation"][i].double().numpy()))
-        rows.append((error, [float(np.mean(distances < s * spacing)) for s in SPACINGS]))
+        rows.append((error, [coincident_share(moved, target, spacings) for spacings in SPACINGS]))
     return rows
 
 
