@@ -198,6 +198,12 @@ def at_most(cloud: np.ndarray, count: int) -> np.ndarray:
     return cloud[farthest_point_sample(cloud, count)] if len(cloud) > count else cloud
 
 
+def exactly(cloud: np.ndarray, count: int, seed: int = 0) -> np.ndarray:
+    """The cloud brought to `count` points as the service brings it (its default seed): farthest-point
+    sampled when larger, every point once and seeded random ones repeated when smaller."""
+    return cloud[resample_indices(len(cloud), count, "fps", np.random.default_rng(seed), cloud)]
+
+
 def resample_indices(
     num_points: int,
     count: int,

@@ -25,6 +25,7 @@ from model.geometry import (
     at_most,
     crop_nearest,
     disjoint_halves,
+    exactly,
     random_rotation,
     voxel_downsample,
 )
@@ -121,12 +122,13 @@ def teacher_view(pair: dict, points: int, protocol: ScanProtocol) -> tuple[np.nd
     source, target = shared, apply_transform(shared, pair["rotation"], pair["translation"])
     if pair["anchor"] is not None:
         source, target = (crop_nearest(cloud, pair["anchor"], points) for cloud in (source, target))
-    return source, target
+    return exactly(source, points), exactly(target, points)  # a small scan's crops fall short of `points`
 
 
 def network_view(source: np.ndarray, target: np.ndarray, points: int) -> tuple[np.ndarray, np.ndarray, Normalisation]:
-    """The clouds as the service gives them to the network: farthest-point sampled and normalised."""
-    source, target = at_most(source, points), at_most(target, points)
+    """The clouds as the service gives them to the network: `points` each (farthest-point sampled, or
+    filled up with repeats), normalised."""
+    source, target = exactly(source, points), exactly(target, points)
     normalisation = Normalisation(source, target)
     return (
         normalisation.source(source).astype(np.float32),

@@ -14,6 +14,7 @@ from model.geometry import (  # noqa: E402
     NETWORK_RADIUS,
     apply_transform,
     random_rotation,
+    resample_indices,
     rotation_angle_deg,
     voxel_downsample,
 )
@@ -119,6 +120,19 @@ def test_network_view_samples_and_normalises_like_the_service():
     radius = max(np.linalg.norm(source, axis=1).max(), np.linalg.norm(target, axis=1).max())
     assert radius == pytest.approx(NETWORK_RADIUS, rel=1e-5)
     np.testing.assert_allclose(source.mean(axis=0), 0, atol=1e-5)
+
+
+def test_a_small_scans_crops_are_filled_up_to_the_networks_count_as_the_service_fills_them():
+    rng = np.random.default_rng(4)
+    pair = make_scan_pair(room(rng)[:1500], PROTOCOLS["indoor"], rng)  # two captures of ~750 points each
+    assert len(pair["source"]) < 1536 and len(pair["target"]) < 1536
+    source, target, normalisation = network_view(pair["source"], pair["target"], 1536)
+    assert source.shape == target.shape == (1536, 3)
+    small = pair["source"]
+    served = small[resample_indices(len(small), 1536, "fps", np.random.default_rng(0), small)]
+    np.testing.assert_allclose(source, normalisation.source(served).astype(np.float32))
+    for cloud in teacher_view(pair, 1536, PROTOCOLS["indoor"]):
+        assert cloud.shape == (1536, 3)
 
 
 def test_scan_pairs_are_seeded_by_index_and_epoch():
