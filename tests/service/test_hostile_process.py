@@ -4,6 +4,8 @@ that trickle a body they will never finish. Throughout, /health must answer with
 
 import io
 import socket
+import subprocess
+import sys
 import threading
 import time
 from concurrent.futures import ThreadPoolExecutor
@@ -17,27 +19,43 @@ from conftest import service_process
 HEALTH_LIMIT_S = 1.0
 
 
+# The poller runs in a process of its own: in the test's process, the threads sending hostile
+# bodies hold the interpreter lock and their delays would count as the service's.
+POLLER = """
+import sys, time, httpx
+url, worst, polls = sys.argv[1], 0.0, 0
+with httpx.Client(timeout=30) as client:
+    while not sys.stdin.closed and sys.stdin.readline() == "poll\\n":
+        started = time.perf_counter()
+        try:
+            ok = client.get(url + "/health").status_code == 200
+        except httpx.HTTPError:
+            ok = False
+        worst, polls = max(worst, time.perf_counter() - started if ok else float("inf")), polls + 1
+        print(worst, polls, flush=True)
+"""
+
+
 class HealthWatch:
-    """Polls /health every 50 ms in a thread; `worst` is the slowest answer (a failure counts as infinite)."""
+    """Polls /health every 50 ms from a separate process; `worst` is the slowest answer (a failure
+    counts as infinite)."""
 
     def __init__(self, url: str):
-        self.url = url
         self.worst = 0.0
         self.polls = 0
         self._stop = threading.Event()
+        self._poller = subprocess.Popen(
+            [sys.executable, "-c", POLLER, url], stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True
+        )
         self._thread = threading.Thread(target=self._run, daemon=True)
 
     def _run(self) -> None:
-        with httpx.Client(timeout=30) as client:
-            while not self._stop.is_set():
-                started = time.perf_counter()
-                try:
-                    ok = client.get(f"{self.url}/health").status_code == 200
-                except httpx.HTTPError:
-                    ok = False
-                self.worst = max(self.worst, time.perf_counter() - started if ok else float("inf"))
-                self.polls += 1
-                self._stop.wait(0.05)
+        while not self._stop.is_set():
+            self._poller.stdin.write("poll\n")
+            self._poller.stdin.flush()
+            worst, polls = self._poller.stdout.readline().split()
+            self.worst, self.polls = float(worst), int(polls)
+            self._stop.wait(0.05)
 
     def __enter__(self) -> "HealthWatch":
         self._thread.start()
@@ -46,6 +64,8 @@ class HealthWatch:
     def __exit__(self, *exc) -> None:
         self._stop.set()
         self._thread.join(timeout=60)
+        self._poller.stdin.close()
+        self._poller.wait(timeout=30)
 
 
 def npy_pair(points: int, seed: int = 0) -> bytes:
