@@ -65,13 +65,6 @@ SLID_SHARES = (0.05, 0.1, 0.2)
 TURNED_DEG = (20.0, 180.0)  # turns of the truth about random axes, refined: where a flipped pose fits
 
 
-def network_answer(network: harness.Network, pair: harness.Pair):
-    """(R, t) in user units as the service computes the network's answer, and its normalisation."""
-    feeds, normalisation = network.prepare(pair.source, pair.target)
-    rotation, translation = network.call(feeds)
-    return (*network.to_user_units(normalisation, rotation, translation), normalisation)
-
-
 def scan_pairs(archive: str, count: int, seed: int) -> list[harness.Pair]:
     """Pairs cut from `count` scans, chosen round-robin over scenes (many scans share a site)."""
     with np.load(harness.DATA / f"{archive}.npz") as data:
@@ -124,7 +117,7 @@ def candidates(
     turned = from_matrix(about_point(axis_angle(random_axis(rng), 5.0), centre) @ truth)
     out.append(("truth+5deg refined", *refine(source, target, *turned, spacing=spacing)[:2], 0.0))
     started = time.perf_counter()
-    rotation, translation, normalisation = network_answer(network, pair)
+    rotation, translation, normalisation = network.answer(pair)
     network_seconds = time.perf_counter() - started
     out.append(("network", rotation, translation, network_seconds))
     started = time.perf_counter()
@@ -243,7 +236,7 @@ def compare_refinement(sets: dict[str, list[harness.Pair]], network: harness.Net
             source, target = pair.source, pair.target
             rng = np.random.default_rng((seed, index, 11))
             started = time.perf_counter()
-            rotation, translation, normalisation = network_answer(network, pair)
+            rotation, translation, normalisation = network.answer(pair)
             network_ms = 1000 * (time.perf_counter() - started)
             centre = apply_transform(source, pair.rotation, pair.translation).mean(axis=0)
             turned = about_point(axis_angle(random_axis(rng), 5.0), centre) @ to_matrix(pair.rotation, pair.translation)

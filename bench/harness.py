@@ -25,6 +25,7 @@ from scipy.spatial import cKDTree
 from model.artifacts import network_points
 from model.geometry import (
     Normalisation,
+    exactly,
     extent,
     from_matrix,
     nearest_rotation,
@@ -140,11 +141,11 @@ class Network:
         self.fps_cap = Settings().fps_max_input_points
 
     def _sample(self, points: np.ndarray) -> np.ndarray:
+        if len(points) <= self.fps_cap:
+            return exactly(points, self.points)
         rng = np.random.default_rng(0)  # the service's default seed, a fresh generator per cloud
-        if len(points) > self.fps_cap:
-            subset = np.sort(rng.choice(len(points), size=self.fps_cap, replace=False))
-            return points[subset[resample_indices(self.fps_cap, self.points, "fps", rng, points[subset])]]
-        return points[resample_indices(len(points), self.points, "fps", rng, points)]
+        subset = np.sort(rng.choice(len(points), size=self.fps_cap, replace=False))
+        return points[subset[resample_indices(self.fps_cap, self.points, "fps", rng, points[subset])]]
 
     def prepare(self, source: np.ndarray, target: np.ndarray) -> tuple[dict, Normalisation]:
         source = self._sample(remove_duplicates(source.astype(np.float64)))
@@ -162,6 +163,11 @@ class Network:
 
     def to_user_units(self, normalisation: Normalisation, rotation, translation) -> tuple[np.ndarray, np.ndarray]:
         return normalisation.to_user_units(nearest_rotation(rotation), translation)
+
+    def answer(self, pair: "Pair") -> tuple[np.ndarray, np.ndarray, Normalisation]:
+        """(R, t) in user units as the service computes the network's answer, and its normalisation."""
+        feeds, normalisation = self.prepare(pair.source, pair.target)
+        return (*self.to_user_units(normalisation, *self.call(feeds)), normalisation)
 
 
 # ---------------------------------------------------------------- pairs with known motions
@@ -254,17 +260,17 @@ def scan_pair(spec: str, seed: int = 0, keep: float = 0.7, max_angle_deg: float 
     return Pair(spec, source, view @ rotation.T + translation, rotation, translation, scan_voxel(archive, name))
 
 
-def scene_pairs(domain: str, per_scan: int = 1, seed: int = 0, shared: bool = False) -> list[Pair]:
+def scene_pairs(domain: str, per_scan: int = 1, seed: int = 0, shared: bool = False, part: str = "test") -> list[Pair]:
     """The paper's indoor or outdoor protocol (model.training.scenes) on every scan of the scenes held
-    out of training, `per_scan` pairs each, pair k of scan i seeded by (seed, i, k). The clouds are
-    two disjoint samples of the scan, or with `shared` one sample moved, as the paper builds its
-    pairs: then they share every point of their overlap."""
+    out of training (`part` "train": of the training scenes), `per_scan` pairs each, pair k of scan i
+    seeded by (seed, i, k). The clouds are two disjoint samples of the scan, or with `shared` one
+    sample moved, as the paper builds its pairs: then they share every point of their overlap."""
     from model.training.scenes import PROTOCOLS, load_scans, make_scan_pair, teacher_view
 
     protocol = PROTOCOLS[domain]
     voxel = VOXEL_OUTDOOR if domain == "outdoor" else VOXEL_OBJECTS_INDOOR
     pairs = []
-    for i, (name, scan) in enumerate(load_scans(domain, "test", DATA).items()):
+    for i, (name, scan) in enumerate(load_scans(domain, part, DATA).items()):
         for k in range(per_scan):
             pair = make_scan_pair(scan, protocol, np.random.default_rng((seed, i, k)))
             source, target = pair["source"], pair["target"]

@@ -25,9 +25,7 @@ def main() -> None:
     for pair in harness.scene_pairs("indoor"):
         errors = []
         for network in networks:
-            feeds, normalisation = network.prepare(pair.source, pair.target)
-            answer = network.to_user_units(normalisation, *network.call(feeds))
-            errors.append(harness.errors(pair, *answer)["rotation_deg"])
+            errors.append(harness.errors(pair, *network.answer(pair)[:2])["rotation_deg"])
         by_scene[scene_of(pair.name.split("/")[1])].append(errors)
     print(f"rotation error alone, deg: mean per file, then pairs over {FAR_DEG:g} deg per file")
     for scene, rows in sorted(by_scene.items(), key=lambda item: -np.mean([row[0] for row in item[1]])):

@@ -1,6 +1,6 @@
 """Does an indoor network fit the scenes it was trained on better than the held-out ones? Rotation
 error alone of ONNX files on one pair per scan of each part (the paper's indoor protocol, two
-captures, pair i seeded by (0, i, 0) as bench.harness.scene_pairs seeds the held-out pairs), by
+captures, bench.harness.scene_pairs), by
 scene, and on the same pairs with their motion removed (the source laid on the target): what the
 network answers where the right answer is no motion at all.
 
@@ -15,12 +15,11 @@ import numpy as np
 
 from bench import harness
 from model.geometry import apply_transform
-from model.training.scenes import PROTOCOLS, load_scans, make_scan_pair, scene_of
+from model.training.scenes import scene_of
 
 
 def error_alone(network: harness.Network, pair: harness.Pair) -> float:
-    feeds, normalisation = network.prepare(pair.source, pair.target)
-    return harness.errors(pair, *network.to_user_units(normalisation, *network.call(feeds)))["rotation_deg"]
+    return harness.errors(pair, *network.answer(pair)[:2])["rotation_deg"]
 
 
 def main() -> None:
@@ -32,17 +31,12 @@ def main() -> None:
     for part in ("train", "test"):
         moved, still = [], []
         by_scene = collections.defaultdict(list)
-        for i, (name, scan) in enumerate(load_scans("indoor", part, harness.DATA).items()):
-            built = make_scan_pair(scan, PROTOCOLS["indoor"], np.random.default_rng((0, i, 0)))
-            rotation, translation = built["rotation"], built["translation"]
-            pair = harness.Pair(
-                name, built["source"], built["target"], rotation, translation, harness.VOXEL_OBJECTS_INDOOR
-            )
-            laid = apply_transform(pair.source, rotation, translation)
-            aligned = harness.Pair(name, laid, pair.target, np.eye(3), np.zeros(3), pair.voxel)
+        for pair in harness.scene_pairs("indoor", part=part):
+            laid = apply_transform(pair.source, pair.rotation, pair.translation)
+            aligned = harness.Pair(pair.name, laid, pair.target, np.eye(3), np.zeros(3), pair.voxel)
             moved.append([error_alone(network, pair) for network in networks])
             still.append([error_alone(network, aligned) for network in networks])
-            by_scene[scene_of(name)].append(moved[-1])
+            by_scene[scene_of(pair.name.split("/")[1])].append(moved[-1])
         print(f"{part}: {len(moved)} pairs")
         for i, path in enumerate(args.models):
             errors, resting = np.array(moved)[:, i], np.array(still)[:, i]
