@@ -151,9 +151,9 @@ class OnnxEngine:
         self.threads = threads or available_cpus()  # of a call that runs alone
         # The other workers' calls share the CPUs too.
         self.threads_beside_others = max(1, self.threads // (model_calls * workers))
-        self._sessions = [_open_session(path, self.threads)]  # [alone, beside others] where the thread counts differ
+        self._sessions = [open_session(path, self.threads)]  # [alone, beside others] where the thread counts differ
         if self.threads_beside_others != self.threads:
-            self._sessions.append(_open_session(path, self.threads_beside_others))
+            self._sessions.append(open_session(path, self.threads_beside_others))
         self.running = running or RunningCalls()
 
         inputs, outputs = self.session.get_inputs(), self.session.get_outputs()
@@ -230,13 +230,17 @@ class OnnxEngine:
         return rotation, translation
 
 
-def _open_session(path: Path, threads: int):
+def open_session(path: Path, threads: int):
+    """An ONNX Runtime session of the model file on `threads` intra-op threads, as the service runs it."""
     import onnxruntime as ort  # heavy import, kept out of modules that only need the types above
 
     options = ort.SessionOptions()
     options.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
     options.intra_op_num_threads = threads
     options.inter_op_num_threads = 1  # the graph is one chain; calls run side by side instead
+    # Its threads stop spinning when a call ends: spinning on, they would take the CPUs that the
+    # refinement and the check, run right after the call, want.
+    options.add_session_config_entry("session.force_spinning_stop", "1")
     try:
         return ort.InferenceSession(str(path), options, providers=["CPUExecutionProvider"])
     except Exception as error:  # onnxruntime raises its own exception types for corrupt files

@@ -69,9 +69,6 @@ from service.validation import InvalidInput, check_cloud
 # Feature matching, refinement and the check run on at most this many points per cloud (a seeded
 # subset): their cost grows with it and small_gicp and KISS-Matcher hold the interpreter lock.
 CHECK_MAX_POINTS = 8_000
-# Smaller check clouds refine on one thread: there small_gicp's threads cost more than they save
-# (ONNX Runtime's threads still spin after a model call and take a CPU from them).
-THREADED_CHECK_POINTS = 4_000
 REFINE_MAX_SECONDS = 10.0
 # The refinement's first, coarse pass, in normalised units (clouds of radius NETWORK_RADIUS), on at
 # most COARSE_POINTS per cloud: its wide correspondences make each iteration dear, and it only has to
@@ -265,7 +262,6 @@ def _prepare(
     normalisation = Normalisation(source_sampled, sampled["target"])
     if base is None:  # the same for every point count: built once per request
         source_check, target_check = (subset(clouds[name], CHECK_MAX_POINTS) for name in ("source", "target"))
-        threads = threads if min(len(source_check), len(target_check)) > THREADED_CHECK_POINTS else 1
         check = AlignmentClouds(source_check, target_check, threads=threads)
         coarse = check
         if min(len(source_check), len(target_check)) > 2 * COARSE_POINTS:  # else it saves too little
@@ -511,7 +507,9 @@ def _unless_slid(prepared: _Prepared, answer: RegistrationResult, options: Regis
         return answer
     started = time.perf_counter()
     check = prepared.check
-    small = AlignmentClouds(subset(check.source, SLIDE_POINTS), subset(check.target, SLIDE_POINTS), check.spacing)
+    small = AlignmentClouds(
+        subset(check.source, SLIDE_POINTS), subset(check.target, SLIDE_POINTS), check.spacing, threads=check.threads
+    )
     scored = subset(check.source, STARTS_SCORE_POINTS)
     centre, size = check.source.mean(axis=0), extent(check.target)
     answer_centre = answer.rotation @ centre + answer.translation  # where the answer moves the source's centre

@@ -101,8 +101,10 @@ async def test_a_users_fitness_threshold_changes_the_reported_fit_only(serve, ti
         default = (await client.post("/register", json=body(method="auto"))).json()
         own = (await client.post("/register", json=body(method="auto", fitness_threshold=100.0))).json()
     assert own["fitness"] == 1.0 and own["fitness_threshold"] == 100.0
-    for name in ("transform", "verified", "reason", "stage"):
+    for name in ("verified", "reason", "stage"):
         assert own[name] == default[name], name
+    # the same pose: refinement on two threads sums in any order, so only the last digits may differ
+    np.testing.assert_allclose(own["transform"], default["transform"], atol=1e-9)
 
 
 async def test_duplicates_are_removed_and_counted(serve, tiny_model):
@@ -873,9 +875,9 @@ async def test_v2_infer_on_the_shipped_model_matches_register(serve, shipped_mod
     assert math.isfinite(reference.json()["fitness"])
 
 
-async def test_a_request_alone_refines_large_clouds_on_every_thread(serve, tiny_model, monkeypatch):
-    """small_gicp gets the worker's threads for check clouds above THREADED_CHECK_POINTS when no other
-    request is in flight, as a lone model call does; one thread for small clouds or beside others."""
+async def test_a_request_alone_refines_on_every_thread(serve, tiny_model, monkeypatch):
+    """small_gicp gets the worker's threads for the check's clouds when no other request is in
+    flight, as a lone model call does; one thread beside others."""
     from service import registration
 
     threads_used = []
@@ -886,16 +888,13 @@ async def test_a_request_alone_refines_large_clouds_on_every_thread(serve, tiny_
             threads_used.append(self.threads)
 
     monkeypatch.setattr(registration, "AlignmentClouds", Recording)
-    rng = np.random.default_rng(3)
-    large = rng.normal(size=(registration.THREADED_CHECK_POINTS + 500, 3))
-    small = rng.normal(size=(registration.THREADED_CHECK_POINTS // 2, 3))
-    limits = {"max_cloud_points": 10_000, "max_body_bytes": 2_000_000, "threads": 2, "workers": 1}
+    cloud = np.random.default_rng(3).normal(size=(300, 3))
+    limits = {"threads": 2, "workers": 1}
     async with serve(settings_for(tiny_model, **limits)) as (app, client):
-        for cloud in (large, small):
-            response = await client.post("/register", json=body(cloud, cloud + 0.1, method="ifnet"))
-            assert response.status_code == 200, response.text
+        response = await client.post("/register", json=body(cloud, cloud + 0.1, method="ifnet"))
+        assert response.status_code == 200, response.text
         app.state.service.in_flight += 1  # another request under way
-        response = await client.post("/register", json=body(large, large + 0.1, method="ifnet"))
+        response = await client.post("/register", json=body(cloud, cloud + 0.1, method="ifnet"))
         app.state.service.in_flight -= 1
         assert response.status_code == 200, response.text
-    assert threads_used == [2, 1, 1]
+    assert threads_used == [2, 1]

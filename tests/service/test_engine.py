@@ -69,6 +69,8 @@ def test_engine_threads_follow_the_usable_cpus_unless_set(tiny_model):
     engine = OnnxEngine(tiny_model, threads=1)
     assert engine.threads == 1
     assert engine.session.get_session_options().intra_op_num_threads == 1
+    # its threads stop spinning when a call ends, leaving the CPUs to the refinement after it
+    assert engine.session.get_session_options().get_session_config_entry("session.force_spinning_stop") == "1"
     # a call beside others gets a share of the threads (at least one); a lone call gets them all
     shared = OnnxEngine(tiny_model, threads=4, model_calls=2)
     assert (shared.threads, shared.threads_beside_others) == (4, 2)
