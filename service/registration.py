@@ -243,9 +243,9 @@ def _prepare(
     threads: int = 1,
     base: _Prepared | None = None,
 ) -> _Prepared:
-    """The pair made ready for a network of `count` points, its check on `threads` (when its clouds
-    are large enough to gain from them); `base`, the same pair made ready for another count, lends
-    its checked distinct points, its samplers and its check's clouds."""
+    """The pair made ready for a network of `count` points, its check on `threads`; `base`, the same
+    pair made ready for another count, lends its checked distinct points, its samplers and its
+    check's clouds."""
     started = time.perf_counter()
     clouds, sampled, reports = {}, {}, {}
     samplers = {} if base is None else base.samplers
@@ -581,7 +581,7 @@ async def register_clouds(
     network (`global`), or the networks in turn (the first one's draft before it) until an answer
     passes the check and, when none does, the global search (`auto`). The CPU-heavy steps run
     through `run_blocking` (a worker thread by default) so that the event loop keeps serving;
-    refinement and the check run on `threads` where the clouds are large. Raises InvalidInput for
+    refinement and the check run on `threads`. Raises InvalidInput for
     clouds that cannot be registered.
     """
     first = networks[0]
