@@ -601,6 +601,30 @@ class AlignmentClouds:
 FEATURE_VOXEL_SPACINGS = 1.5  # KISS-Matcher's voxel size, in point spacings
 FEATURE_VOXEL = 0.05  # the clouds are scaled so that the voxel is this: KISS-Matcher refuses tiny voxels
 FEATURE_MAX_VOXELS = 2**19  # half of KISS-Matcher's voxel key range (21 bits per axis) from the origin
+# KISS-Matcher kills the process (a segfault, not an exception) on a cloud where at most a few voxels
+# have the 3 voxels within its normal radius that a feature needs: points in isolated clumps, such as
+# pairs of near-duplicates far apart (their spacing, and so the voxel, is the clumps' size). It crashed
+# here on clouds with 0-2 such voxels; a cloud reaches it only with FEATURE_MIN_DESCRIBED of them,
+# counted on voxel centres (every cloud of the benchmarks has at least 30).
+FEATURE_NORMAL_VOXELS = 3.0  # KISS-Matcher's normal radius, in voxels (its default configuration)
+FEATURE_MIN_DESCRIBED = 8
+# Voxels looked at: a few first (on a scan's surface nearly every voxel is describable), then more.
+FEATURE_DESCRIBED_SAMPLES = (64, 1_000)
+
+
+def describable(points: np.ndarray, voxel: float) -> bool:
+    """The cloud has at least FEATURE_MIN_DESCRIBED voxels (of side `voxel`) with two other occupied
+    voxels whose centres lie within FEATURE_NORMAL_VOXELS of their own: enough for KISS-Matcher."""
+    keys = np.floor(points / voxel)
+    keys = np.unique(keys - keys.min(axis=0), axis=0)  # occupied voxels, in voxel units
+    if len(keys) < FEATURE_MIN_DESCRIBED:
+        return False
+    tree, order = cKDTree(keys), np.random.default_rng(0).permutation(len(keys))
+    for count in FEATURE_DESCRIBED_SAMPLES:
+        distances, _ = tree.query(keys[order[:count]], k=3, distance_upper_bound=FEATURE_NORMAL_VOXELS)
+        if np.isfinite(distances[:, 2]).sum() >= FEATURE_MIN_DESCRIBED:
+            return True
+    return False
 
 
 def feature_match(
@@ -618,12 +642,12 @@ def feature_match(
     offset = np.zeros(3)
     if max(np.abs(source).max(), np.abs(target).max()) * scale > FEATURE_MAX_VOXELS * FEATURE_VOXEL:
         offset = target.mean(axis=0)
+    clouds = [np.ascontiguousarray((cloud - offset) * scale, np.float64) for cloud in (source, target)]
+    if not all(describable(cloud, FEATURE_VOXEL) for cloud in clouds):
+        return np.eye(3), np.zeros(3)
     matcher = kiss_matcher.KISSMatcher(kiss_matcher.KISSMatcherConfig(FEATURE_VOXEL))
     try:
-        found = matcher.estimate(
-            np.ascontiguousarray((source - offset) * scale, np.float64),
-            np.ascontiguousarray((target - offset) * scale, np.float64),
-        )
+        found = matcher.estimate(*clouds)
     except RuntimeError:  # the matcher's own refusals (too few points or features)
         return np.eye(3), np.zeros(3)
     rotation, translation = np.asarray(found.rotation, np.float64), np.asarray(found.translation, np.float64)

@@ -216,6 +216,50 @@ def test_feature_matching_finds_the_motion_of_clouds_far_from_the_origin():
     assert np.linalg.norm(apply_transform(source, found_rotation, found_translation) - target, axis=1).max() < 0.5
 
 
+def near_duplicate_pairs(seed: int) -> np.ndarray:
+    """Points in pairs a thousandth apart, the pairs far apart: the spacing, and so feature matching's
+    voxel, is the pairs' size, and no voxel has a neighbour."""
+    rng = np.random.default_rng(seed)
+    base = rng.normal(size=(150, 3)) * 10
+    return np.concatenate([base, base + 1e-3 * rng.normal(size=(150, 3))])
+
+
+def test_feature_matching_passes_over_clouds_it_cannot_describe_instead_of_crashing(tmp_path):
+    """KISS-Matcher segfaults (it killed the service's worker) on clouds whose voxels have no
+    neighbours: feature matching then finds nothing, in a process that lives on."""
+    pytest.importorskip("kiss_matcher")
+    import subprocess
+    import sys
+
+    from model.geometry import FEATURE_VOXEL, FEATURE_VOXEL_SPACINGS, describable, point_spacing
+
+    source, target = near_duplicate_pairs(0), near_duplicate_pairs(1)
+    spacing = max(point_spacing(source), point_spacing(target))
+    scale = FEATURE_VOXEL / (FEATURE_VOXEL_SPACINGS * spacing)
+    assert not describable(source * scale, FEATURE_VOXEL)
+    blob = np.random.default_rng(2).normal(size=(800, 3)) * [3.0, 2.0, 1.0]
+    assert describable(blob * FEATURE_VOXEL / (FEATURE_VOXEL_SPACINGS * point_spacing(blob)), FEATURE_VOXEL)
+    np.save(tmp_path / "source.npy", source)
+    np.save(tmp_path / "target.npy", target)
+    code = (
+        "import sys, numpy as np; from model.geometry import feature_match, point_spacing; "
+        "s, t = (np.load(f'{sys.argv[1]}/{name}.npy') for name in ('source', 'target')); "
+        "r, x = feature_match(s, t, max(point_spacing(s), point_spacing(t))); "
+        "print(np.allclose(r, np.eye(3)) and np.allclose(x, 0.0))"
+    )
+    done = subprocess.run([sys.executable, "-c", code, str(tmp_path)], capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert done.stdout.strip() == "True"
+
+
+def test_the_describable_rule_follows_kiss_matchers_normal_radius():
+    kiss_matcher = pytest.importorskip("kiss_matcher")
+    from model.geometry import FEATURE_NORMAL_VOXELS, FEATURE_VOXEL
+
+    config = kiss_matcher.KISSMatcherConfig(FEATURE_VOXEL)
+    assert config.normal_radius / config.voxel_size == pytest.approx(FEATURE_NORMAL_VOXELS)
+
+
 def test_threads_refine_and_check_as_one_thread_does(monkeypatch):
     """small_gicp on two threads (every call of it) gives the refinement and the verdict of one."""
     import small_gicp

@@ -1,6 +1,7 @@
-"""Hostile requests answered by the app itself (in-process): a bomb archive over HTTP, made-up methods,
-v2 shapes whose product overflows, strings and booleans where numbers belong, a Host header that
-must not make a redirect, slow bodies, and the API key's scope."""
+"""Hostile requests answered by the app itself (in-process): a bomb archive over HTTP, clouds that
+crashed feature matching's library, made-up methods, v2 shapes whose product overflows, strings and
+booleans where numbers belong, a Host header that must not make a redirect, slow bodies, and the API
+key's scope."""
 
 import asyncio
 import io
@@ -35,6 +36,22 @@ async def test_an_npz_bomb_body_is_refused(serve, tiny_model):
         answer = await client.post("/register", content=body, headers={"Content-Type": "application/x-npz"})
     assert answer.status_code == 422
     assert answer.json()["errors"][0]["field"] == "source"
+
+
+@pytest.mark.parametrize("method", ["auto", "global"])
+async def test_clouds_of_isolated_near_duplicate_pairs_get_an_answer(serve, tiny_model, method):
+    """Feature matching's library crashed the worker on them (its voxel, from their spacing, leaves
+    every voxel alone): the pair is answered, flagged, and the service goes on."""
+    rng = np.random.default_rng(6)
+    clouds = []
+    for _ in range(2):
+        base = rng.normal(size=(150, 3)) * 10
+        clouds.append(np.concatenate([base, base + 1e-3 * rng.normal(size=(150, 3))]).tolist())
+    async with serve(Settings(model_path=tiny_model)) as (app, client):
+        answer = await client.post("/register", json={"source": clouds[0], "target": clouds[1], "method": method})
+        assert answer.status_code == 200, answer.text
+        assert answer.json()["verified"] is False
+        assert (await client.post("/register", json=PAIR)).status_code == 200
 
 
 async def test_made_up_methods_share_one_metrics_label(serve, tiny_model):
