@@ -73,6 +73,7 @@ def _lifespan(engines: list[Engine] | None):
         settings = state.settings
         # A missing or corrupt model file raises ModelLoadError here, so startup fails with its message.
         state.serve(engines or await asyncio.to_thread(load_models, settings))
+        state.accepting = True  # again, where the app is started anew (a test client per request)
         becoming_ready = asyncio.create_task(_become_ready(state))
         try:
             yield

@@ -623,6 +623,21 @@ async def test_ready_flips_after_warm_up(serve, tiny_model, gated_engine):
     assert engine.calls[:3] == [1, 2, 3]  # warm-up: one call at each batch size, before any request
 
 
+def test_an_app_started_again_warms_up_again_rather_than_stopping(tiny_model):
+    """An app whose lifespan ends and starts again (a test client per request does that) reports
+    warming up until it is ready, not stopping."""
+    from fastapi.testclient import TestClient
+
+    from service.app import create_app
+
+    app = create_app(settings_for(tiny_model))
+    for _ in range(2):
+        with TestClient(app) as client:
+            assert app.state.service.accepting
+            assert client.get("/health").status_code == 200
+        assert not app.state.service.accepting  # the lifespan has ended
+
+
 async def test_a_failed_warm_up_fails_liveness_so_the_process_is_restarted(serve, tiny_model):
     from service.engine import OnnxEngine
 
