@@ -615,8 +615,7 @@ FEATURE_DESCRIBED_SAMPLES = (64, 1_000)
 def describable(points: np.ndarray, voxel: float) -> bool:
     """The cloud has at least FEATURE_MIN_DESCRIBED voxels (of side `voxel`) with two other occupied
     voxels whose centres lie within FEATURE_NORMAL_VOXELS of their own: enough for KISS-Matcher."""
-    keys = np.floor(points / voxel)
-    keys = np.unique(keys - keys.min(axis=0), axis=0)  # occupied voxels, in voxel units
+    keys = np.unique(np.floor(points / voxel), axis=0)  # occupied voxels, in voxel units
     if len(keys) < FEATURE_MIN_DESCRIBED:
         return False
     tree, order = cKDTree(keys), np.random.default_rng(0).permutation(len(keys))
