@@ -358,6 +358,9 @@ MIN_CONSTRAINT = 0.02  # inliers on one plane or one cylinder can slide along it
 MIN_INLIERS = 30  # fewer matching points prove nothing
 SCORE_NORMAL_NEIGHBOURS = 12  # the target's normals of the constraint: the least-spread axis of this many points
 CHECK_REFINE_SECONDS = 10.0  # the check's refinement stops here at the latest
+# A source point with no other within this many point spacings is an outlier or a lone sample: whether
+# it matches tells nothing of how much of the surfaces overlap (AlignmentClouds.surface_fitness).
+ISOLATED_SPACINGS = 3.0
 
 
 class AlignmentScore(NamedTuple):
@@ -529,6 +532,14 @@ class AlignmentClouds:
         moved = apply_transform(points, rotation, translation)
         distances, _ = self.target_tree.query(moved, k=1, distance_upper_bound=spacings * self.spacing)
         return float(np.isfinite(distances).mean())
+
+    def surface_fitness(self, rotation: np.ndarray, translation: np.ndarray) -> float:
+        """score's fitness over the source's surface points alone (those with another source point within
+        ISOLATED_SPACINGS): the share of the source's surfaces that (R, t) lays on the target's. The
+        fitness itself where no point has a neighbour."""
+        nearest, _ = cKDTree(self.source).query(self.source, k=2, distance_upper_bound=ISOLATED_SPACINGS * self.spacing)
+        surface = self.source[np.isfinite(nearest[:, 1])]
+        return self.fitness(surface if len(surface) else self.source, rotation, translation, INLIER_SPACINGS)
 
     def verify(self, rotation: np.ndarray, translation: np.ndarray, min_fitness: float = MIN_FITNESS) -> Verification:
         """Is (R, t) right? Scores it at the clouds' point spacing, refines it once to see whether it

@@ -105,7 +105,8 @@ DRAFT_REACH_DEG = 30.0
 # The networks learnt turns of up to this per axis: a draft's answer turned further from `init` may be
 # the guess's, a symmetric shape's turned pose, so it is judged before it stands (_answer).
 NETWORK_REACH_DEG = 45.0
-# A verified answer matching less than SLIDE_FITNESS of the source may lie beside the truth, slid along
+# A verified answer matching less than SLIDE_FITNESS of the source, and of its surfaces (outliers lower the
+# fitness, not the overlap: AlignmentClouds.surface_fitness), may lie beside the truth, slid along
 # the surfaces where part of the clouds still overlaps (refined there, the check passes it): it is slid
 # back and forth by each of SLIDE_SHARES of the extent along each principal axis of the target and by
 # each of SLIDE_DIAGONAL_SHARES between two axes, refined on SLIDE_POINTS points (coarse to fine, for
@@ -499,14 +500,17 @@ def _half_turns(
 
 
 def _unless_slid(prepared: _Prepared, answer: RegistrationResult, options: RegistrationOptions) -> RegistrationResult:
-    """The answer, or, when it is verified and matches less than SLIDE_FITNESS of the source, a pose
-    beside it that fits clearly better and passes the check too, not verified: both pass, and where
-    the scene repeats itself (shelves, a corridor) the better fitting one may be the wrong one.
-    Charged with the time the search took."""
+    """The answer, or, when it is verified and matches less than SLIDE_FITNESS of the source and of its
+    surfaces, a pose beside it that fits clearly better and passes the check too, not verified: both
+    pass, and where the scene repeats itself (shelves, a corridor) the better fitting one may be the
+    wrong one. Charged with the time the search took."""
     if not answer.verified or answer.score.fitness >= SLIDE_FITNESS:
         return answer
     started = time.perf_counter()
     check = prepared.check
+    if check.surface_fitness(answer.rotation, answer.translation) >= SLIDE_FITNESS:
+        answer.timings_ms["postprocess_ms"] += (time.perf_counter() - started) * 1000.0
+        return answer
     small = AlignmentClouds(
         subset(check.source, SLIDE_POINTS), subset(check.target, SLIDE_POINTS), check.spacing, threads=check.threads
     )

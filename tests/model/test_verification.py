@@ -76,6 +76,19 @@ def test_overlap_counts_the_other_way():
     assert score.overlap == pytest.approx(10 / 20)
 
 
+def test_surface_fitness_leaves_out_the_sources_isolated_points():
+    """Points with no other source point within ISOLATED_SPACINGS spacings (outliers) count in the
+    fitness, not in the surface fitness; a shift that lays half the surface on the target halves it."""
+    points = grid(0.05)
+    outliers = np.array([[0.5, 0.5, 1.0], [0.2, 0.7, -1.0], [5.0, 5.0, 5.0], [0.5, 0.5, 0.4]])  # 6-8+ spacings off
+    clouds = AlignmentClouds(np.concatenate([points, outliers]), points)
+    assert clouds.score(np.eye(3), np.zeros(3)).fitness == pytest.approx(400 / 404)
+    assert clouds.surface_fitness(np.eye(3), np.zeros(3)) == 1.0
+    assert clouds.surface_fitness(np.eye(3), np.array([0.5, 0.0, 0.0])) == pytest.approx(11 / 20)
+    lone = AlignmentClouds(outliers, points, spacing=0.05)  # no surface: the fitness itself
+    assert lone.surface_fitness(np.eye(3), np.zeros(3)) == lone.score(np.eye(3), np.zeros(3)).fitness == 0.0
+
+
 def test_constraint_is_zero_on_a_plane_and_positive_on_a_closed_surface():
     plane = grid(0.05)
     assert inlier_constraint(plane, np.tile([0.0, 0.0, 1.0], (len(plane), 1))) == pytest.approx(0.0, abs=1e-12)

@@ -563,6 +563,38 @@ def test_on_evenly_spaced_shelves_the_right_answer_is_flagged_ambiguous():
     assert not judged.verified and "ambiguous" in judged.reason
 
 
+def with_outliers(points: np.ndarray, share: float, rng: np.random.Generator) -> np.ndarray:
+    """The points and share x as many more, uniform in their bounding box."""
+    outliers = rng.uniform(points.min(axis=0), points.max(axis=0), size=(int(share * len(points)), 3))
+    return np.concatenate([points, outliers])
+
+
+@pytest.mark.parametrize("overlap", ["whole", "half"])
+def test_outliers_alone_do_not_send_a_right_answer_to_the_slide_check(monkeypatch, overlap):
+    """Outliers in the source lower the right answer's fitness below SLIDE_FITNESS, not the share of
+    the source's surfaces it lays on the target's: with the whole scene in both clouds (one capture,
+    moved) that share stays above it and no probe is tried; with half of it, probes are tried."""
+    from model.geometry import AlignmentClouds
+    from service import registration
+
+    rng = np.random.default_rng(3)
+    first = second = stepped_wall(rng)
+    rotation, translation = euler_to_matrix([5.0, 3.0, -4.0]), np.array([0.2, -0.1, 0.05])
+    if overlap == "half":
+        first, second = first[first[:, 0] <= 4], second[second[:, 0] >= 2]
+    source, target = with_outliers(first, 0.2, rng), apply_transform(second, rotation, translation)
+    prepared, options = prepared_pair(source, target)
+    answer = checked_answer(prepared, options, rotation, translation)
+    surfaces = prepared.check.surface_fitness(answer.rotation, answer.translation)
+    assert answer.verified and answer.fitness < registration.SLIDE_FITNESS
+    assert (surfaces >= registration.SLIDE_FITNESS) == (overlap == "whole")
+    probes = []
+    refine = AlignmentClouds.refine
+    monkeypatch.setattr(AlignmentClouds, "refine", lambda self, *a, **k: probes.append(1) or refine(self, *a, **k))
+    assert registration._unless_slid(prepared, answer, options) is answer
+    assert bool(probes) == (overlap == "half")
+
+
 def test_only_a_verified_answer_that_matches_little_is_looked_beside(monkeypatch):
     """The slide check leaves an answer matching SLIDE_FITNESS of the source or more, and an unverified
     one, as they are, without a look; every answer register_clouds gives passes through it."""
