@@ -728,9 +728,9 @@ async def _confirmed_draft(
     answer is verified too, the pair is ambiguous (a symmetric shape) and the better fitting of them
     is the answer, not verified. A first answer that fails the check only on its constraint
     (unpinned: it fits and has settled, but the clouds would let it slide) stands unverified where
-    the guess agrees with it: answers near it would fail alike, and one far from it would contradict
-    both methods. An answer more than DRAFT_REACH_DEG from the guess is set aside unrefined:
-    refinement would not bring the two within AGREEMENT_DEG."""
+    the guess, refined, is unpinned too and agrees with it: answers near it would fail alike, and
+    one far from it would contradict both methods. An answer more than DRAFT_REACH_DEG from the
+    guess is set aside unrefined: refinement would not bring the two within AGREEMENT_DEG."""
     paid: list[dict[str, float]] = []  # the timings of the draft's answers refined and checked
     unrefined: list[Prediction] = []  # the draft's answers set aside unrefined (too far from the guess)
     refined: list[RegistrationResult] = []  # the guess refined and checked, once needed
@@ -753,9 +753,11 @@ async def _confirmed_draft(
         return answer
 
     async def confirmed(answer: RegistrationResult) -> bool:
-        """Feature matching's guess agrees with the answer: as it is, or refined and judged alike
-        (verified for a verified answer, unpinned for an unpinned one)."""
-        if _confirms(features, answer):
+        """Feature matching's guess agrees with the answer: a verified one as it is, or refined and
+        judged alike (verified for a verified answer, unpinned for an unpinned one). An unpinned
+        answer may have slid away from the truth with its turn right, so the guess's turn alone
+        cannot confirm it: the guess refined must be unpinned too, not pinned down elsewhere."""
+        if answer.verified and _confirms(features, answer):
             return True
         if not refined:
             refined.append(await run_blocking(_finish_features, prepared, features, draft.model, options))

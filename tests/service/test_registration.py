@@ -375,6 +375,33 @@ def test_an_unpinned_draft_answer_stands_unverified_where_feature_matching_agree
         assert ("model", 768) in asked
 
 
+def test_an_unpinned_draft_answer_slid_from_the_truth_gives_way_to_feature_matchings_pinned_one(monkeypatch):
+    """A floor and two walls meeting in a corner: the truth lays the corners on each other (pinned);
+    a pose slid along one wall matches the floor and that wall alone (unpinned). The draft answers
+    the truth's turn, slid; feature matching's guess, the truth, refined, is pinned and verified: the
+    slid answer does not stand though its turn agrees with the guess, and feature matching's does."""
+    from service import registration
+
+    rng = np.random.default_rng(4)
+    floor = np.column_stack([rng.uniform(0, 4, 6000), rng.uniform(0, 2, 6000), np.zeros(6000)])
+    wall = np.column_stack([rng.uniform(0, 4, 3000), np.zeros(3000), rng.uniform(0, 1, 3000)])
+    end = np.column_stack([np.zeros(1500), rng.uniform(0, 2, 1500), rng.uniform(0, 1, 1500)])
+    points = np.concatenate([floor, wall, end])
+    truth = euler_to_matrix([20.0, 5.0, -5.0])
+    monkeypatch.setattr(registration, "feature_match", lambda *args: (truth, np.zeros(3)))
+
+    async def slid(source_n, target_n):  # the truth's turn, slid along the wall (half a normalised unit)
+        rotation, translation = kabsch(source_n.astype(np.float64), target_n.astype(np.float64))
+        return Prediction(rotation, translation + rotation @ [0.5, 0.0, 0.0])
+
+    options, settings, _ = pipeline_inputs(None, None, method="auto")
+    networks = [Network("object", 768, slid, draft=Network("object", 384, slid, "draft"))]
+    target = apply_transform(points, truth, np.zeros(3))
+    result = asyncio.run(register_clouds(points, target, options, settings, networks))
+    assert (result.stage, result.verified) == ("features", True)
+    assert np.linalg.norm(result.translation) < 0.01 and rotation_angle_deg(result.rotation, truth) < 0.1
+
+
 @pytest.mark.parametrize("scan", ["pcl_table_scene_mug", "sunrgbd_000017"])
 def test_feature_matching_finds_the_motion_of_two_samples_of_a_large_scan(real_scans, scan):
     """Two independent halves of a real scan (100k and 25k points each), the second moved and
