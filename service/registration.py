@@ -99,6 +99,10 @@ STARTS_POINTS = 384
 # both ways: of many turns tried, one that fits a third of a partial scan may be wrong.
 MIN_STARTS_FITNESS = 0.4
 AGREEMENT_DEG = 5.0  # two fitting answers further apart than this contradict each other
+# An unpinned answer whose translation puts the source's centre further than this share of the extent
+# from where feature matching's guess puts it may have slid off the truth: the guess's turn alone
+# does not confirm it (_confirmed_draft).
+UNPINNED_AGREEMENT_SHARE = 0.05
 # A draft's answer further than this from feature matching's guess is set aside unrefined: refinement
 # would not bring the two within AGREEMENT_DEG (a draft's answer is 4-15 deg off on ModelNet, median).
 DRAFT_REACH_DEG = 30.0
@@ -728,9 +732,10 @@ async def _confirmed_draft(
     answer is verified too, the pair is ambiguous (a symmetric shape) and the better fitting of them
     is the answer, not verified. A first answer that fails the check only on its constraint
     (unpinned: it fits and has settled, but the clouds would let it slide) stands unverified where
-    the guess, refined, is unpinned too and agrees with it: answers near it would fail alike, and
-    one far from it would contradict both methods. An answer more than DRAFT_REACH_DEG from the
-    guess is set aside unrefined: refinement would not bring the two within AGREEMENT_DEG."""
+    the guess agrees with it in turn and translation, or refined is unpinned too and agrees with it:
+    answers near it would fail alike, and one far from it would contradict both methods. An answer
+    more than DRAFT_REACH_DEG from the guess is set aside unrefined: refinement would not bring the
+    two within AGREEMENT_DEG."""
     paid: list[dict[str, float]] = []  # the timings of the draft's answers refined and checked
     unrefined: list[Prediction] = []  # the draft's answers set aside unrefined (too far from the guess)
     refined: list[RegistrationResult] = []  # the guess refined and checked, once needed
@@ -753,11 +758,10 @@ async def _confirmed_draft(
         return answer
 
     async def confirmed(answer: RegistrationResult) -> bool:
-        """Feature matching's guess agrees with the answer: a verified one as it is, or refined and
-        judged alike (verified for a verified answer, unpinned for an unpinned one). An unpinned
-        answer may have slid away from the truth with its turn right, so the guess's turn alone
-        cannot confirm it: the guess refined must be unpinned too, not pinned down elsewhere."""
-        if answer.verified and _confirms(features, answer):
+        """Feature matching's guess agrees with the answer: as it is (an unpinned answer, which may
+        have slid off the truth with its turn right, also in translation), or refined and judged
+        alike (verified for a verified answer, unpinned for an unpinned one)."""
+        if _confirms(features, answer) and (answer.verified or _beside(prepared, features, answer)):
             return True
         if not refined:
             refined.append(await run_blocking(_finish_features, prepared, features, draft.model, options))
@@ -843,6 +847,15 @@ def _charged(answer: RegistrationResult, others: list[dict[str, float]]) -> Regi
 def _confirms(guess: _FeatureGuess, answer: RegistrationResult) -> bool:
     """Feature matching's guess lies within AGREEMENT_DEG of the answer (the caller judges the answer)."""
     return rotation_angle_deg(answer.rotation, guess.rotation) <= AGREEMENT_DEG
+
+
+def _beside(prepared: _Prepared, guess: _FeatureGuess, answer: RegistrationResult) -> bool:
+    """The guess puts the source's centre within UNPINNED_AGREEMENT_SHARE of the extent of where the
+    answer puts it."""
+    check = prepared.check
+    centre = check.source.mean(axis=0)
+    apart = (answer.rotation - guess.rotation) @ centre + answer.translation - guess.translation
+    return bool(np.linalg.norm(apart) <= UNPINNED_AGREEMENT_SHARE * extent(check.target))
 
 
 def _tighter(answer: RegistrationResult, other: RegistrationResult) -> bool:

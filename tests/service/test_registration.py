@@ -354,14 +354,18 @@ def table_top(rng: np.random.Generator) -> np.ndarray:
 @pytest.mark.parametrize(("guess_turn_deg", "stands"), [(2.0, True), (90.0, False)])
 def test_an_unpinned_draft_answer_stands_unverified_where_feature_matching_agrees(monkeypatch, guess_turn_deg, stands):
     """The draft's answer fails the check only because the clouds let it slide. Where feature
-    matching's guess agrees with it, it is the answer, not verified, and no model is asked: any
-    answer near it would fail alike. Where the guess disagrees, the pipeline goes on to the model."""
+    matching's guess agrees with it in turn and translation, it is the answer, not verified, without
+    refining the guess, and no model is asked: any answer near it would fail alike. Where the guess
+    disagrees, the pipeline goes on to the model."""
     from service import registration
 
     points = table_top(np.random.default_rng(3))
     truth = euler_to_matrix([20.0, 5.0, -5.0])
     guess = euler_to_matrix([guess_turn_deg, 0.0, 0.0]) @ truth
     monkeypatch.setattr(registration, "feature_match", lambda *args: (guess, np.zeros(3)))
+    refined = []
+    finish_features = registration._finish_features
+    monkeypatch.setattr(registration, "_finish_features", lambda *args: refined.append(1) or finish_features(*args))
     asked = []
     options, settings, _ = pipeline_inputs(None, None, method="auto")
     draft = Network("object", 384, recording(asked, "draft"), "draft")
@@ -369,7 +373,7 @@ def test_an_unpinned_draft_answer_stands_unverified_where_feature_matching_agree
     target = apply_transform(points, truth, np.zeros(3))
     result = asyncio.run(register_clouds(points, target, options, settings, networks))
     if stands:
-        assert (result.stage, result.verified, asked) == ("draft", False, [("draft", 384)])
+        assert (result.stage, result.verified, asked, refined) == ("draft", False, [("draft", 384)], [])
         assert "pin" in result.reason and rotation_angle_deg(result.rotation, truth) < 0.5
     else:
         assert ("model", 768) in asked
