@@ -6,6 +6,7 @@ target ~ source @ R.T + t; 4x4 matrices are homogeneous [[R, t], [0, 1]].
 
 import time
 from collections.abc import Sequence
+from functools import cached_property
 from typing import NamedTuple
 
 import numpy as np
@@ -482,7 +483,8 @@ class AlignmentClouds:
     """One pair's clouds made ready once for every refinement and check of its answers: the point
     spacing, scipy's kd-tree of the target (scores), and small_gicp's clouds with their normals and
     covariances and its kd-tree of the target (refinement; the target's normals also give scores
-    their constraint). Never changed after construction, so threads may share it; building it takes
+    their constraint). Never changed after construction (but for the source's centre and the
+    target's extent, computed once when first asked), so threads may share it; building it takes
     about as long as a few GICP iterations. small_gicp runs on `threads` OpenMP threads (it holds the
     interpreter lock while it runs, so more threads are the only way its work uses more than one CPU)."""
 
@@ -532,6 +534,20 @@ class AlignmentClouds:
         moved = apply_transform(points, rotation, translation)
         distances, _ = self.target_tree.query(moved, k=1, distance_upper_bound=spacings * self.spacing)
         return float(np.isfinite(distances).mean())
+
+    @cached_property
+    def source_centre(self) -> np.ndarray:
+        return self.source.mean(axis=0)
+
+    @cached_property
+    def target_extent(self) -> float:
+        return extent(self.target)
+
+    def centres_apart(self, first: tuple[np.ndarray, np.ndarray], second: tuple[np.ndarray, np.ndarray]) -> float:
+        """How far apart two poses (R, t) put the source's centre, as a share of the target's extent."""
+        (rotation, translation), (other_rotation, other_translation) = first, second
+        apart = (rotation - other_rotation) @ self.source_centre + translation - other_translation
+        return float(np.linalg.norm(apart)) / self.target_extent
 
     def surface_fitness(self, rotation: np.ndarray, translation: np.ndarray) -> float:
         """score's fitness over the source's surface points alone (those with another source point within

@@ -47,7 +47,6 @@ from model.geometry import (
     Verification,
     apply_transform,
     at_most,
-    extent,
     feature_match,
     fitness_and_rmse,
     from_matrix,
@@ -519,16 +518,14 @@ def _unless_slid(prepared: _Prepared, answer: RegistrationResult, options: Regis
         subset(check.source, SLIDE_POINTS), subset(check.target, SLIDE_POINTS), check.spacing, threads=check.threads
     )
     scored = subset(check.source, STARTS_SCORE_POINTS)
-    centre, size = check.source.mean(axis=0), extent(check.target)
-    answer_centre = answer.rotation @ centre + answer.translation  # where the answer moves the source's centre
 
     def fit(rotation: np.ndarray, translation: np.ndarray) -> float:
         return check.fitness(scored, rotation, translation, INLIER_SPACINGS)
 
     def returned(rotation: np.ndarray, translation: np.ndarray) -> bool:
         """Back beside the answer: the finer pass would settle it there, where it fits no better."""
-        moved = np.linalg.norm(rotation @ centre + translation - answer_centre)
-        return moved <= SLIDE_RETURN_SHARE * size and rotation_angle_deg(rotation, answer.rotation) <= AGREEMENT_DEG
+        moved = check.centres_apart((rotation, translation), (answer.rotation, answer.translation))
+        return moved <= SLIDE_RETURN_SHARE and rotation_angle_deg(rotation, answer.rotation) <= AGREEMENT_DEG
 
     distances = refine_distances(check.spacing, prepared.normalisation.scale)
     bar = (1.0 + SLIDE_MARGIN) * fit(answer.rotation, answer.translation)
@@ -550,7 +547,7 @@ def _unless_slid(prepared: _Prepared, answer: RegistrationResult, options: Regis
     best.timings_ms["postprocess_ms"] += (time.perf_counter() - started) * 1000.0
     if best is answer:
         return answer
-    away = float(np.linalg.norm(best.translation - answer.translation)) / size
+    away = float(np.linalg.norm(best.translation - answer.translation)) / check.target_extent
     reason = f"ambiguous: a pose {away:.0%} of the extent away also passes the check (a repeating scene?)"
     return dataclasses.replace(best, verified=False, reason=reason)
 
@@ -761,7 +758,10 @@ async def _confirmed_draft(
         """Feature matching's guess agrees with the answer: as it is (an unpinned answer, which may
         have slid off the truth with its turn right, also in translation), or refined and judged
         alike (verified for a verified answer, unpinned for an unpinned one)."""
-        if _confirms(features, answer) and (answer.verified or _beside(prepared, features, answer)):
+        pose, guess = (answer.rotation, answer.translation), (features.rotation, features.translation)
+        if _confirms(features, answer) and (
+            answer.verified or prepared.check.centres_apart(pose, guess) <= UNPINNED_AGREEMENT_SHARE
+        ):
             return True
         if not refined:
             refined.append(await run_blocking(_finish_features, prepared, features, draft.model, options))
@@ -847,15 +847,6 @@ def _charged(answer: RegistrationResult, others: list[dict[str, float]]) -> Regi
 def _confirms(guess: _FeatureGuess, answer: RegistrationResult) -> bool:
     """Feature matching's guess lies within AGREEMENT_DEG of the answer (the caller judges the answer)."""
     return rotation_angle_deg(answer.rotation, guess.rotation) <= AGREEMENT_DEG
-
-
-def _beside(prepared: _Prepared, guess: _FeatureGuess, answer: RegistrationResult) -> bool:
-    """The guess puts the source's centre within UNPINNED_AGREEMENT_SHARE of the extent of where the
-    answer puts it."""
-    check = prepared.check
-    centre = check.source.mean(axis=0)
-    apart = (answer.rotation - guess.rotation) @ centre + answer.translation - guess.translation
-    return bool(np.linalg.norm(apart) <= UNPINNED_AGREEMENT_SHARE * extent(check.target))
 
 
 def _tighter(answer: RegistrationResult, other: RegistrationResult) -> bool:
