@@ -362,7 +362,8 @@ def markdown(summary: list[dict], shares: dict, command: str, seconds: float) ->
         "the overlap's centre and refined alike (turned refined). "
         '"Check": the check alone; "answer": the '
         "verdict a request's answer gets (service.registration.verdicts: the check, then the slide check, "
-        "which looks beside a verified answer matching little of the source). Neither judges a flipped pose "
+        "which looks beside a verified answer matching little of the source unless feature matching's guess "
+        "lands on it, as under `auto`). Neither judges a flipped pose "
         "of a symmetric object: the pipeline does, by its other answers (feature matching, the rotated "
         "starts, the half turns). So every wrong answer with a verified verdict is sent to the service "
         "(`auto`, `refine`) as the request's `init`, the network starting from it: what the service answers "

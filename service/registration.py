@@ -17,9 +17,9 @@ Where the method allows and the answer fails the check, the other networks follo
 the global path: feature matching (also a second opinion on a verified answer), then the first
 network's draft (or the network) from 24 rotated starts, which also judge a verified answer: a
 start that lands far from it and fits as well (a symmetric shape) contradicts it.
-Whatever the path, a verified answer that matches little of the source is slid back and forth
-beside itself: a pose there that fits clearly better and passes the check too leaves the pair
-ambiguous (`_unless_slid`). `register_pairs` runs a request's pairs through it and the models'
+Whatever the path, a verified answer that matches little of the source, unless feature matching
+landed on it independently, is slid back and forth beside itself: a pose there that fits clearly
+better and passes the check too leaves the pair ambiguous (`_unless_slid`). `register_pairs` runs a request's pairs through it and the models'
 batchers.
 """
 
@@ -124,6 +124,9 @@ SLIDE_POINTS = 500
 SLIDE_MARGIN = 0.1
 SLIDE_RETURN_SHARE = 0.01  # a probe whose coarse pass brings it this near the answer is back in its basin
 SLIDE_ITERATIONS = 10  # per pass of a probe: on SLIDE_POINTS points GICP often cycles until its cap
+# Feature matching's guess this near an answer it did not start rules a slide out: an independent method
+# landed on the same place (calibration's slid poses lie at least twice as far from it).
+SLIDE_GUESS_SHARE = 0.01
 RIVAL_FITNESS_MARGIN = 0.05  # an unverified answer fitting within this of a verified one also contradicts it
 RIVAL_RMSE_SHARE = 0.8  # a verified answer this much tighter than a verified rival, and fitting as well, outranks it
 Stage = Literal["ifnet", "draft", "multistart", "features"]
@@ -502,16 +505,26 @@ def _half_turns(
     return [_result(prepared, candidate, "multistart", model, options, _FREE) for candidate in candidates], cost
 
 
-def _unless_slid(prepared: _Prepared, answer: RegistrationResult, options: RegistrationOptions) -> RegistrationResult:
+def _unless_slid(
+    prepared: _Prepared, answer: RegistrationResult, options: RegistrationOptions, guess: _FeatureGuess | None
+) -> RegistrationResult:
     """The answer, or, when it is verified and matches less than SLIDE_FITNESS of the source and of its
     surfaces, a pose beside it that fits clearly better and passes the check too, not verified: both
     pass, and where the scene repeats itself (shelves, a corridor) the better fitting one may be the
-    wrong one. Charged with the time the search took."""
+    wrong one. Not looked for where feature matching's `guess`, which the answer did not start from,
+    lies within SLIDE_GUESS_SHARE and AGREEMENT_DEG of it. Charged with the time the search took."""
     if not answer.verified or answer.score.fitness >= SLIDE_FITNESS:
         return answer
     started = time.perf_counter()
     check = prepared.check
-    if check.surface_fitness(answer.rotation, answer.translation) >= SLIDE_FITNESS:
+    pinned = (
+        guess is not None
+        and answer.stage != "features"
+        and _confirms(guess, answer)
+        and check.centres_apart((answer.rotation, answer.translation), (guess.rotation, guess.translation))
+        <= SLIDE_GUESS_SHARE
+    )
+    if pinned or check.surface_fitness(answer.rotation, answer.translation) >= SLIDE_FITNESS:
         answer.timings_ms["postprocess_ms"] += (time.perf_counter() - started) * 1000.0
         return answer
     small = AlignmentClouds(
@@ -592,19 +605,21 @@ async def register_clouds(
     first = networks[0]
     count = (first.draft or first).network_points if options.method == "auto" else first.network_points
     base = await run_blocking(_prepare, source, target, count, options, settings, threads)
-    answer = await _answer(source, target, base, options, settings, networks, run_blocking, threads)
-    return await run_blocking(_unless_slid, base, answer, options)
+    answer, guess = await _answer(source, target, base, options, settings, networks, run_blocking, threads)
+    return await run_blocking(_unless_slid, base, answer, options, guess)
 
 
 def verdicts(
     source: np.ndarray, target: np.ndarray, poses: Sequence[tuple[np.ndarray, np.ndarray]], settings: Settings
 ) -> list[RegistrationResult]:
     """The verdict a request's answer gets, for each given pose (R, t) of `source` onto `target`:
-    the check, then the slide check. For calibrating them on pairs with known truth."""
+    the check, then the slide check, as under `auto`, with feature matching's guess. For calibrating
+    them on pairs with known truth."""
     options = RegistrationOptions()
     prepared = _prepare(source, target, STARTS_POINTS, options, settings)
+    guess = _feature_guess(prepared)
     answers = (_result(prepared, _checked(prepared, *pose, None), "ifnet", "", options, dict(_FREE)) for pose in poses)
-    return [_unless_slid(prepared, answer, options) for answer in answers]
+    return [_unless_slid(prepared, answer, options, guess) for answer in answers]
 
 
 async def _answer(
@@ -616,9 +631,9 @@ async def _answer(
     networks: Sequence[Network],
     run_blocking: RunBlocking,
     threads: int,
-) -> RegistrationResult:
+) -> tuple[RegistrationResult, _FeatureGuess | None]:
     """register_clouds' answer before its slide check, from the pair made ready (`base`) for the
-    first network asked."""
+    first network asked, and feature matching's guess where it was made."""
     first = networks[0]
     auto = options.method == "auto"
     # The global path runs on the first clouds prepared: the check's clouds are the same for every count.
@@ -655,9 +670,9 @@ async def _answer(
                 if options.init is not None and draft.score.fitness < SLIDE_FITNESS:
                     rivals, cost = await _judged_by_starts(base, first, [draft], options, run_blocking)
                     found, costs = found + rivals, costs + [cost]
-                return _given_and_charged([draft, *found], options.method, costs)
+                return _given_and_charged([draft, *found], options.method, costs), features
             if draft is not None:
-                return draft
+                return draft, features
             discarded += paid
             # Feature matching's answer before the models': they follow only where it fails the check.
             if features_answer is None:
@@ -670,7 +685,7 @@ async def _answer(
                 break
         answers += unconfirmed  # the draft's verified answers feature matching did not confirm: judged with the rest
         if options.method == "ifnet" and not answers[0].verified:
-            return answers[0]
+            return answers[0], features
     # Feature matching: the global path's cheapest stage, and a second opinion on a verified answer.
     features = features or await run_blocking(_feature_guess, base)
     settled = [answer for answer in answers if answer.verified]
@@ -690,7 +705,7 @@ async def _answer(
         answers += found
         discarded.append(cost)
     # `ifnet` answers with the network, whatever else fits; the other stages only judge it.
-    return _given_and_charged(answers, options.method, discarded)
+    return _given_and_charged(answers, options.method, discarded), features
 
 
 async def _judged_by_starts(

@@ -465,7 +465,7 @@ def test_a_right_answer_with_no_better_pose_beside_it_stays_verified():
     prepared, options, rotation, translation = two_captures(stepped_wall)
     answer = checked_answer(prepared, options, rotation, translation)
     assert answer.verified and answer.fitness < registration.SLIDE_FITNESS  # half of it overlaps: it is looked at
-    assert registration._unless_slid(prepared, answer, options) is answer
+    assert registration._unless_slid(prepared, answer, options, None) is answer
 
 
 def test_an_answer_of_the_rotated_starts_needs_a_closer_fit(monkeypatch):
@@ -502,13 +502,61 @@ def test_probes_that_come_back_to_the_answer_stop_after_their_coarse_pass(monkey
         return refine(self, *args, **kwargs)
 
     monkeypatch.setattr(AlignmentClouds, "refine", counted)
-    assert registration._unless_slid(prepared, answer, options) is answer
+    assert registration._unless_slid(prepared, answer, options, None) is answer
     probes = len(
         slides(answer.translation, prepared.check.target, registration.SLIDE_SHARES, registration.SLIDE_DIAGONAL_SHARES)
     )
     passes = [iterations for points, iterations in calls if points <= registration.SLIDE_POINTS]
     assert probes <= len(passes) < 2 * probes
     assert set(passes) == {registration.SLIDE_ITERATIONS}
+
+
+def small_refinements(monkeypatch):
+    """The sizes of the clouds AlignmentClouds.refine runs on from now on: the slide check's probes run on
+    SLIDE_POINTS."""
+    from model.geometry import AlignmentClouds
+
+    sizes = []
+    refine = AlignmentClouds.refine
+
+    def counted(self, *args, **kwargs):
+        sizes.append(len(self.source))
+        return refine(self, *args, **kwargs)
+
+    monkeypatch.setattr(AlignmentClouds, "refine", counted)
+    return sizes
+
+
+def test_feature_matching_landing_on_an_answer_it_did_not_start_spares_the_look_beside_it(monkeypatch):
+    """Feature matching's guess within SLIDE_GUESS_SHARE of the extent and AGREEMENT_DEG of a network's
+    answer: an independent method found the same place, so no probe runs. A guess further off, or an
+    answer refined from the guess itself (stage `features`), is looked beside as before."""
+    import dataclasses
+
+    from scipy.spatial.transform import Rotation
+
+    from service import registration
+
+    prepared, options, rotation, translation = two_captures(stepped_wall)
+    answer = dataclasses.replace(checked_answer(prepared, options, rotation, translation), stage="draft")
+    assert answer.verified and answer.fitness < registration.SLIDE_FITNESS
+    extent = prepared.check.target_extent
+    turn = Rotation.from_rotvec([0.0, 0.0, np.radians(3.0)]).as_matrix()  # about the origin: the centre moves too
+    centre = prepared.check.source_centre
+
+    def guess(share):
+        turned = turn @ answer.rotation
+        # the source's centre `share` of the extent from where the answer puts it
+        moved = answer.rotation @ centre + answer.translation + np.array([share * extent, 0.0, 0.0])
+        return registration._FeatureGuess(turned, moved - turned @ centre, 0.01)
+
+    probed = small_refinements(monkeypatch)
+    assert registration._unless_slid(prepared, answer, options, guess(0.005)) is answer
+    assert not probed
+    for judged, near in [(answer, guess(0.02)), (dataclasses.replace(answer, stage="features"), guess(0.005))]:
+        assert registration._unless_slid(prepared, judged, options, near) is judged
+        assert sum(size <= registration.SLIDE_POINTS for size in probed) >= len(registration.SLIDE_SHARES) * 6
+        probed.clear()
 
 
 def test_a_verified_pose_slid_beside_the_truth_gives_way_to_it_flagged():
@@ -522,7 +570,7 @@ def test_a_verified_pose_slid_beside_the_truth_gives_way_to_it_flagged():
     rotation, translation = from_matrix(truth)
     slid, extent = slid_sample(prepared, options, rotation, translation)
     assert slid.verified and np.linalg.norm(slid.translation - translation) > 0.05 * extent  # wrong, and verified
-    answer = registration._unless_slid(prepared, slid, options)
+    answer = registration._unless_slid(prepared, slid, options, None)
     assert not answer.verified and answer.reason.startswith("ambiguous: a pose")
     assert np.linalg.norm(answer.translation - translation) < 0.01 * extent
     assert rotation_angle_deg(answer.rotation, rotation) < 0.5 and answer.fitness > 1.5 * slid.fitness
@@ -543,9 +591,9 @@ def test_a_users_fitness_threshold_changes_what_is_reported_not_the_verdict(thre
     for options in (default, own):
         slid, _ = slid_sample(prepared, options, rotation, translation)
         right = checked_answer(prepared, options, rotation, translation)
-        judged = registration._unless_slid(prepared, slid, options)
+        judged = registration._unless_slid(prepared, slid, options, None)
         assert not judged.verified and judged.reason.startswith("ambiguous: a pose"), options.fitness_threshold
-        assert registration._unless_slid(prepared, right, options) is right and right.verified
+        assert registration._unless_slid(prepared, right, options, None) is right and right.verified
         assert registration._given([slid, right], "auto").translation is right.translation
     assert slid.fitness_threshold == threshold and slid.fitness in (0.0, 1.0)  # reported at the user's distance
 
@@ -559,7 +607,7 @@ def test_on_evenly_spaced_shelves_the_right_answer_is_flagged_ambiguous():
     )
     answer = checked_answer(prepared, options, rotation, translation)
     assert answer.verified
-    judged = registration._unless_slid(prepared, answer, options)
+    judged = registration._unless_slid(prepared, answer, options, None)
     assert not judged.verified and "ambiguous" in judged.reason
 
 
@@ -591,7 +639,7 @@ def test_outliers_alone_do_not_send_a_right_answer_to_the_slide_check(monkeypatc
     probes = []
     refine = AlignmentClouds.refine
     monkeypatch.setattr(AlignmentClouds, "refine", lambda self, *a, **k: probes.append(1) or refine(self, *a, **k))
-    assert registration._unless_slid(prepared, answer, options) is answer
+    assert registration._unless_slid(prepared, answer, options, None) is answer
     assert bool(probes) == (overlap == "half")
 
 
@@ -614,15 +662,15 @@ def test_only_a_verified_answer_that_matches_little_is_looked_beside(monkeypatch
     monkeypatch.setattr(registration, "SLIDE_FITNESS", right.fitness)  # the sample's truth matches 0.81 of it
     assert right.fitness >= registration.SLIDE_FITNESS > slid.fitness and slid.verified and not unverified.verified
     for left in (right, unverified):
-        assert registration._unless_slid(prepared, left, options) is left
-    assert registration._unless_slid(prepared, slid, options) is not slid
+        assert registration._unless_slid(prepared, left, options, None) is left
+    assert registration._unless_slid(prepared, slid, options, None) is not slid
     handed = []
-    monkeypatch.setattr(registration, "_unless_slid", lambda prepared, answer, options: handed.append(answer))
+    monkeypatch.setattr(registration, "_unless_slid", lambda prepared, answer, options, guess: handed.append(answer))
     _, settings, _ = pipeline_inputs(None, None)
     for given in (right, slid, unverified):
 
         async def answer(*args, given=given):
-            return given
+            return given, None
 
         monkeypatch.setattr(registration, "_answer", answer)
         asyncio.run(registration.register_clouds(source, target, options, settings, [Network("object", 384, None)]))
