@@ -16,11 +16,13 @@ unverified); otherwise feature matching's answer, refined, is checked before any
 Where the method allows and the answer fails the check, the other networks follow in turn, then
 the global path: feature matching (also a second opinion on a verified answer), then the first
 network's draft (or the network) from 24 rotated starts, which also judge a verified answer: a
-start that lands far from it and fits as well (a symmetric shape) contradicts it.
+start that lands far from it and fits as well (a symmetric shape) contradicts it. Under `auto`
+the starts do not search where an answer fails the check only on its constraint and matches most
+of the source.
 Whatever the path, a verified answer that matches little of the source, unless feature matching
 landed on it independently, is slid back and forth beside itself: a pose there that fits clearly
-better and passes the check too leaves the pair ambiguous (`_unless_slid`). `register_pairs` runs a request's pairs through it and the models'
-batchers.
+better and passes the check too leaves the pair ambiguous (`_unless_slid`). `register_pairs` runs
+a request's pairs through it and the models' batchers.
 """
 
 import asyncio
@@ -102,6 +104,9 @@ AGREEMENT_DEG = 5.0  # two fitting answers further apart than this contradict ea
 # from where feature matching's guess puts it may have slid off the truth: the guess's turn alone
 # does not confirm it (_confirmed_draft).
 UNPINNED_AGREEMENT_SHARE = 0.05
+# Under `auto`, an unpinned answer matching at least this share of the source leaves the rotated starts
+# nothing to find: on tabletop scenes they only added flips fitting a little better (docs/benchmarks.md).
+UNPINNED_FITNESS = 0.85
 # A draft's answer further than this from feature matching's guess is set aside unrefined: refinement
 # would not bring the two within AGREEMENT_DEG (a draft's answer is 4-15 deg off on ModelNet, median).
 DRAFT_REACH_DEG = 30.0
@@ -698,12 +703,14 @@ async def _answer(
         answers.append(await run_blocking(_finish_features, base, features, first.model, options))
     # The rotated starts search for an answer where none is verified and, past `ifnet`, judge the
     # verified ones: on a symmetric shape a network or feature matching may fit a flipped pose as
-    # well as the right one.
+    # well as the right one. Under `auto` an unpinned answer matching most of the source ends the search.
     if options.method != "ifnet":
         verified = [answer for answer in answers if answer.verified]
-        found, cost = await _judged_by_starts(base, first, verified, options, run_blocking)
-        answers += found
-        discarded.append(cost)
+        unpinned = [answer for answer in answers if answer.unpinned and answer.score.fitness >= UNPINNED_FITNESS]
+        if verified or not (auto and unpinned):
+            found, cost = await _judged_by_starts(base, first, verified, options, run_blocking)
+            answers += found
+            discarded.append(cost)
     # `ifnet` answers with the network, whatever else fits; the other stages only judge it.
     return _given_and_charged(answers, options.method, discarded), features
 

@@ -379,6 +379,32 @@ def test_an_unpinned_draft_answer_stands_unverified_where_feature_matching_agree
         assert ("model", 768) in asked
 
 
+@pytest.mark.parametrize("fitness_needed", [0.85, 1.01], ids=["matches-most", "matches-less"])
+def test_an_unpinned_answer_matching_most_of_the_source_ends_the_search(monkeypatch, fitness_needed):
+    """Feature matching's guess disagrees with the draft's unpinned answer, so the model is asked: its
+    answer, right, fails the check only on its constraint and matches the whole source. Under `auto`
+    the rotated starts do not search then (on tabletops they only added flips fitting a little
+    better); where the answer matches less than UNPINNED_FITNESS of the source, they do."""
+    from service import registration
+
+    points = table_top(np.random.default_rng(3))
+    truth = euler_to_matrix([20.0, 5.0, -5.0])
+    guess = euler_to_matrix([90.0, 0.0, 0.0]) @ truth
+    monkeypatch.setattr(registration, "feature_match", lambda *args: (guess, np.zeros(3)))
+    monkeypatch.setattr(registration, "UNPINNED_FITNESS", fitness_needed)
+    asked = []
+    options, settings, _ = pipeline_inputs(None, None, method="auto")
+    draft = Network("object", 384, recording(asked, "draft"), "draft")
+    networks = [Network("object", 768, recording(asked, "model"), draft=draft)]
+    target = apply_transform(points, truth, np.zeros(3))
+    result = asyncio.run(register_clouds(points, target, options, settings, networks))
+    searched = asked.count(("draft", 384)) >= len(registration.STARTS)
+    assert ("model", 768) in asked and not result.verified and "pin" in result.reason
+    assert searched == (fitness_needed > 1.0)
+    if not searched:
+        assert result.stage == "ifnet" and rotation_angle_deg(result.rotation, truth) < 0.5
+
+
 def test_an_unpinned_draft_answer_slid_from_the_truth_gives_way_to_feature_matchings_pinned_one(monkeypatch):
     """A floor and two walls meeting in a corner: the truth lays the corners on each other (pinned);
     a pose slid along one wall matches the floor and that wall alone (unpinned). The draft answers
