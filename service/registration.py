@@ -18,7 +18,7 @@ the global path: feature matching (also a second opinion on a verified answer), 
 network's draft (or the network) from 24 rotated starts, which also judge a verified answer: a
 start that lands far from it and fits as well (a symmetric shape) contradicts it. Under `auto`
 the starts do not search where an answer fails the check only on its constraint and matches most
-of the source.
+of the source, and elsewhere replace such an answer only where they fit clearly better.
 Whatever the path, a verified answer that matches little of the source, unless feature matching
 landed on it independently, is slid back and forth beside itself: a pose there that fits clearly
 better and passes the check too leaves the pair ambiguous (`_unless_slid`). `register_pairs` runs
@@ -703,16 +703,29 @@ async def _answer(
         answers.append(await run_blocking(_finish_features, base, features, first.model, options))
     # The rotated starts search for an answer where none is verified and, past `ifnet`, judge the
     # verified ones: on a symmetric shape a network or feature matching may fit a flipped pose as
-    # well as the right one. Under `auto` an unpinned answer matching most of the source ends the search.
+    # well as the right one. Under `auto` an unpinned answer matching most of the source ends the search,
+    # and a start's unverified answer replaces an unpinned one only where it fits clearly better.
     if options.method != "ifnet":
         verified = [answer for answer in answers if answer.verified]
         unpinned = [answer for answer in answers if answer.unpinned and answer.score.fitness >= UNPINNED_FITNESS]
         if verified or not (auto and unpinned):
             found, cost = await _judged_by_starts(base, first, verified, options, run_blocking)
-            answers += found
+            answers += _fitting_clearly_better(found, answers) if auto and not verified else found
             discarded.append(cost)
     # `ifnet` answers with the network, whatever else fits; the other stages only judge it.
     return _given_and_charged(answers, options.method, discarded), features
+
+
+def _fitting_clearly_better(
+    candidates: list[RegistrationResult], answers: list[RegistrationResult]
+) -> list[RegistrationResult]:
+    """The candidates that may replace the unpinned `answers`: verified, or fitting RIVAL_FITNESS_MARGIN
+    better than all of them (on a tabletop a flip of the scene fits about as well as the truth)."""
+    fits = [answer.score.fitness for answer in answers if answer.unpinned]
+    if not fits:
+        return candidates
+    bar = max(fits) + RIVAL_FITNESS_MARGIN
+    return [answer for answer in candidates if answer.verified or answer.score.fitness >= bar]
 
 
 async def _judged_by_starts(

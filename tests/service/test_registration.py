@@ -405,6 +405,35 @@ def test_an_unpinned_answer_matching_most_of_the_source_ends_the_search(monkeypa
         assert result.stage == "ifnet" and rotation_angle_deg(result.rotation, truth) < 0.5
 
 
+def test_a_start_replaces_an_unpinned_answer_only_where_it_fits_clearly_better(monkeypatch):
+    """Where the rotated starts search past an unpinned answer (the right one, on a tabletop), an
+    unverified start fitting less than RIVAL_FITNESS_MARGIN better (the table flipped) is left out;
+    one fitting clearly better, or verified, stays a candidate."""
+    import dataclasses
+
+    from service import registration
+
+    points = table_top(np.random.default_rng(3))
+    truth = euler_to_matrix([20.0, 5.0, -5.0])
+    target = apply_transform(points, truth, np.zeros(3))
+    options, settings, _ = pipeline_inputs(None, None, method="auto", refine={})
+    prepared = registration._prepare(points, target, 384, options, settings)
+    checked = registration._checked(prepared, truth, np.zeros(3), options.refine)
+    right = registration._result(prepared, checked, "ifnet", "object", options, dict(registration._FREE))
+    assert right.unpinned and not right.verified
+    flip = euler_to_matrix([0.0, 0.0, 180.0]) @ truth  # half a turn about the table's normal
+
+    def start(better_by: float, verified: bool = False):
+        score = right.score._replace(fitness=right.score.fitness - 0.2 + better_by)
+        return dataclasses.replace(right, rotation=flip, stage="multistart", score=score, verified=verified)
+
+    lower = dataclasses.replace(right, score=right.score._replace(fitness=right.score.fitness - 0.2))
+    close, clear, verified = start(0.02), start(0.1), start(0.0, verified=True)
+    kept = registration._fitting_clearly_better([close, clear, verified], [lower])
+    assert kept == [clear, verified]
+    assert registration._fitting_clearly_better([close], [dataclasses.replace(lower, unpinned=False)]) == [close]
+
+
 def test_an_unpinned_draft_answer_slid_from_the_truth_gives_way_to_feature_matchings_pinned_one(monkeypatch):
     """A floor and two walls meeting in a corner: the truth lays the corners on each other (pinned);
     a pose slid along one wall matches the floor and that wall alone (unpinned). The draft answers
