@@ -105,7 +105,7 @@ AGREEMENT_DEG = 5.0  # two fitting answers further apart than this contradict ea
 # does not confirm it (_confirmed_draft).
 UNPINNED_AGREEMENT_SHARE = 0.05
 # Under `auto`, an unpinned answer matching at least this share of the source leaves the rotated starts
-# nothing to find: on tabletop scenes they only added flips fitting a little better (docs/benchmarks.md).
+# nothing to find: on tabletop scenes they only added flips fitting a little better (service/README.md).
 UNPINNED_FITNESS = 0.85
 # A draft's answer further than this from feature matching's guess is set aside unrefined: refinement
 # would not bring the two within AGREEMENT_DEG (a draft's answer is 4-15 deg off on ModelNet, median).
