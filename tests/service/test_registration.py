@@ -351,6 +351,23 @@ def table_top(rng: np.random.Generator) -> np.ndarray:
     return np.concatenate([table, box])
 
 
+def tabletop_answer(monkeypatch, guess_turn_deg: float):
+    """`auto` on the table top moved by a known turn, with feature matching's guess `guess_turn_deg`
+    off it and oracle draft and model (`recording`): the answer, the calls asked, the true rotation."""
+    from service import registration
+
+    points = table_top(np.random.default_rng(3))
+    truth = euler_to_matrix([20.0, 5.0, -5.0])
+    guess = euler_to_matrix([guess_turn_deg, 0.0, 0.0]) @ truth
+    monkeypatch.setattr(registration, "feature_match", lambda *args: (guess, np.zeros(3)))
+    asked = []
+    options, settings, _ = pipeline_inputs(None, None, method="auto")
+    draft = Network("object", 384, recording(asked, "draft"), "draft")
+    networks = [Network("object", 768, recording(asked, "model"), draft=draft)]
+    target = apply_transform(points, truth, np.zeros(3))
+    return asyncio.run(register_clouds(points, target, options, settings, networks)), asked, truth
+
+
 @pytest.mark.parametrize(("guess_turn_deg", "stands"), [(2.0, True), (90.0, False)])
 def test_an_unpinned_draft_answer_stands_unverified_where_feature_matching_agrees(monkeypatch, guess_turn_deg, stands):
     """The draft's answer fails the check only because the clouds let it slide. Where feature
@@ -359,19 +376,10 @@ def test_an_unpinned_draft_answer_stands_unverified_where_feature_matching_agree
     disagrees, the pipeline goes on to the model."""
     from service import registration
 
-    points = table_top(np.random.default_rng(3))
-    truth = euler_to_matrix([20.0, 5.0, -5.0])
-    guess = euler_to_matrix([guess_turn_deg, 0.0, 0.0]) @ truth
-    monkeypatch.setattr(registration, "feature_match", lambda *args: (guess, np.zeros(3)))
     refined = []
     finish_features = registration._finish_features
     monkeypatch.setattr(registration, "_finish_features", lambda *args: refined.append(1) or finish_features(*args))
-    asked = []
-    options, settings, _ = pipeline_inputs(None, None, method="auto")
-    draft = Network("object", 384, recording(asked, "draft"), "draft")
-    networks = [Network("object", 768, recording(asked, "model"), draft=draft)]
-    target = apply_transform(points, truth, np.zeros(3))
-    result = asyncio.run(register_clouds(points, target, options, settings, networks))
+    result, asked, truth = tabletop_answer(monkeypatch, guess_turn_deg)
     if stands:
         assert (result.stage, result.verified, asked, refined) == ("draft", False, [("draft", 384)], [])
         assert "pin" in result.reason and rotation_angle_deg(result.rotation, truth) < 0.5
@@ -387,17 +395,8 @@ def test_an_unpinned_answer_matching_most_of_the_source_ends_the_search(monkeypa
     better); where the answer matches less than UNPINNED_FITNESS of the source, they do."""
     from service import registration
 
-    points = table_top(np.random.default_rng(3))
-    truth = euler_to_matrix([20.0, 5.0, -5.0])
-    guess = euler_to_matrix([90.0, 0.0, 0.0]) @ truth
-    monkeypatch.setattr(registration, "feature_match", lambda *args: (guess, np.zeros(3)))
     monkeypatch.setattr(registration, "UNPINNED_FITNESS", fitness_needed)
-    asked = []
-    options, settings, _ = pipeline_inputs(None, None, method="auto")
-    draft = Network("object", 384, recording(asked, "draft"), "draft")
-    networks = [Network("object", 768, recording(asked, "model"), draft=draft)]
-    target = apply_transform(points, truth, np.zeros(3))
-    result = asyncio.run(register_clouds(points, target, options, settings, networks))
+    result, asked, truth = tabletop_answer(monkeypatch, 90.0)
     searched = asked.count(("draft", 384)) >= len(registration.STARTS)
     assert ("model", 768) in asked and not result.verified and "pin" in result.reason
     assert searched == (fitness_needed > 1.0)
