@@ -522,13 +522,7 @@ def _unless_slid(
         return answer
     started = time.perf_counter()
     check = prepared.check
-    pinned = (
-        guess is not None
-        and answer.stage != "features"
-        and _confirms(guess, answer)
-        and check.centres_apart((answer.rotation, answer.translation), (guess.rotation, guess.translation))
-        <= SLIDE_GUESS_SHARE
-    )
+    pinned = guess is not None and answer.stage != "features" and _lands_on(prepared, guess, answer, SLIDE_GUESS_SHARE)
     if pinned or check.surface_fitness(answer.rotation, answer.translation) >= SLIDE_FITNESS:
         answer.timings_ms["postprocess_ms"] += (time.perf_counter() - started) * 1000.0
         return answer
@@ -793,9 +787,10 @@ async def _confirmed_draft(
         """Feature matching's guess agrees with the answer: as it is (an unpinned answer, which may
         have slid off the truth with its turn right, also in translation), or refined and judged
         alike (verified for a verified answer, unpinned for an unpinned one)."""
-        pose, guess = (answer.rotation, answer.translation), (features.rotation, features.translation)
-        if _confirms(features, answer) and (
-            answer.verified or prepared.check.centres_apart(pose, guess) <= UNPINNED_AGREEMENT_SHARE
+        if (
+            _confirms(features, answer)
+            if answer.verified
+            else _lands_on(prepared, features, answer, UNPINNED_AGREEMENT_SHARE)
         ):
             return True
         if not refined:
@@ -882,6 +877,13 @@ def _charged(answer: RegistrationResult, others: list[dict[str, float]]) -> Regi
 def _confirms(guess: _FeatureGuess, answer: RegistrationResult) -> bool:
     """Feature matching's guess lies within AGREEMENT_DEG of the answer (the caller judges the answer)."""
     return rotation_angle_deg(answer.rotation, guess.rotation) <= AGREEMENT_DEG
+
+
+def _lands_on(prepared: _Prepared, guess: _FeatureGuess, answer: RegistrationResult, share: float) -> bool:
+    """The guess agrees with the answer in turn (_confirms) and puts the source's centre within `share`
+    of the extent of where the answer puts it."""
+    pose, guessed = (answer.rotation, answer.translation), (guess.rotation, guess.translation)
+    return _confirms(guess, answer) and prepared.check.centres_apart(pose, guessed) <= share
 
 
 def _tighter(answer: RegistrationResult, other: RegistrationResult) -> bool:

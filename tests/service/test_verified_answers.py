@@ -622,7 +622,6 @@ def test_outliers_alone_do_not_send_a_right_answer_to_the_slide_check(monkeypatc
     """Outliers in the source lower the right answer's fitness below SLIDE_FITNESS, not the share of
     the source's surfaces it lays on the target's: with the whole scene in both clouds (one capture,
     moved) that share stays above it and no probe is tried; with half of it, probes are tried."""
-    from model.geometry import AlignmentClouds
     from service import registration
 
     rng = np.random.default_rng(3)
@@ -636,9 +635,7 @@ def test_outliers_alone_do_not_send_a_right_answer_to_the_slide_check(monkeypatc
     surfaces = prepared.check.surface_fitness(answer.rotation, answer.translation)
     assert answer.verified and answer.fitness < registration.SLIDE_FITNESS
     assert (surfaces >= registration.SLIDE_FITNESS) == (overlap == "whole")
-    probes = []
-    refine = AlignmentClouds.refine
-    monkeypatch.setattr(AlignmentClouds, "refine", lambda self, *a, **k: probes.append(1) or refine(self, *a, **k))
+    probes = small_refinements(monkeypatch)
     assert registration._unless_slid(prepared, answer, options, None) is answer
     assert bool(probes) == (overlap == "half")
 
