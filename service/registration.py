@@ -92,6 +92,10 @@ STARTS_REFINED = 3
 RIVAL_REACH_DEG = 15.0
 LOOSE_SPACINGS = 4.5
 RIVAL_LOOSE_SHARE = 0.8
+# The draft's first answer, set aside far from feature matching's guess, is refined to judge the answer
+# from the guess's turn only where it fits loosely at least this share as well: refined, those fitting
+# less never contradicted it, and refining them cost most on large scans (service/README.md).
+CONTRADICTING_LOOSE_SHARE = 0.4
 STARTS_SCORE_POINTS = 2_000  # source points that rank the starts' coarse answers
 # Points per cloud of the starts' network calls: a coarse answer each, which refinement settles;
 # each call costs about 0.4x one at the network's 768 points.
@@ -469,19 +473,10 @@ def _rivals(
     judge (`settled`), only their rivals: none, where no coarse answer fits loosely as well."""
     check = prepared.check
     source = subset(check.source, STARTS_SCORE_POINTS)  # drawn once for every coarse answer
-
-    def fit(rotation: np.ndarray, translation: np.ndarray, spacings: float) -> float:
-        return check.fitness(source, rotation, translation, spacings)
-
-    ranked = [(fit(rotation, translation, INLIER_SPACINGS), rotation, translation) for rotation, translation in coarse]
+    ranked = [(check.fitness(source, *pose, INLIER_SPACINGS), *pose) for pose in coarse]
     if settled:
-        bar = RIVAL_LOOSE_SHARE * max(fit(answer.rotation, answer.translation, LOOSE_SPACINGS) for answer in settled)
-        ranked = [
-            (fitness, rotation, translation)
-            for fitness, rotation, translation in ranked
-            if min(rotation_angle_deg(rotation, answer.rotation) for answer in settled) > RIVAL_REACH_DEG
-            and fit(rotation, translation, LOOSE_SPACINGS) >= bar
-        ]
+        rival = _rival_test(prepared, settled)
+        ranked = [entry for entry in ranked if rival(*entry[1:])]
     ranked.sort(key=lambda entry: -entry[0])
     refine_options = options.refine or RefineOptions()  # coarse answers: every candidate is refined
     best = ranked[:STARTS_REFINED]
@@ -489,6 +484,27 @@ def _rivals(
         _checked(prepared, rotation, translation, refine_options, MIN_STARTS_FITNESS)
         for _, rotation, translation in best
     ]
+
+
+def _rival_test(
+    prepared: _Prepared, settled: Sequence[RegistrationResult], share: float = RIVAL_LOOSE_SHARE
+) -> Callable[[np.ndarray, np.ndarray], bool]:
+    """Whether a coarse answer (R, t) may be a rival of the verified answers `settled`, worth refining to
+    judge them: further than RIVAL_REACH_DEG from each (nearer ones settle on it), fitting at least
+    `share` as well as the best of them at LOOSE_SPACINGS."""
+    check = prepared.check
+    source = subset(check.source, STARTS_SCORE_POINTS)
+
+    def loose(rotation: np.ndarray, translation: np.ndarray) -> float:
+        return check.fitness(source, rotation, translation, LOOSE_SPACINGS)
+
+    bar = share * max(loose(answer.rotation, answer.translation) for answer in settled)
+
+    def rival(rotation: np.ndarray, translation: np.ndarray) -> bool:
+        far = min(rotation_angle_deg(rotation, answer.rotation) for answer in settled) > RIVAL_REACH_DEG
+        return bool(far and loose(rotation, translation) >= bar)
+
+    return rival
 
 
 def _half_turns(
@@ -754,7 +770,8 @@ async def _confirmed_draft(
     A verified answer is confirmed by the guess within AGREEMENT_DEG of it or, where the guess is
     too coarse for that (a few degrees off on noisy clouds), by the guess refined and checked. An
     answer from the guess lies near it by construction, so it stands only if the first answer,
-    refined, does not contradict it (as the model's answer would in the second opinion); where that
+    refined, does not contradict it (as the model's answer would in the second opinion; one set aside
+    that fits loosely under CONTRADICTING_LOOSE_SHARE as well is not refined for that); where that
     answer is verified too, the pair is ambiguous (a symmetric shape) and the better fitting of them
     is the answer, not verified. A first answer that fails the check only on its constraint
     (unpinned: it fits and has settled, but the clouds would let it slide) stands unverified where
@@ -798,18 +815,21 @@ async def _confirmed_draft(
         alike = refined[0].verified if answer.verified else refined[0].unpinned
         return alike and rotation_angle_deg(refined[0].rotation, answer.rotation) <= AGREEMENT_DEG
 
+    def unpaid() -> list[dict[str, float]]:
+        """The timings of the draft's answers set aside unrefined: their calls still count."""
+        return [_model_timings([prediction]) | {"postprocess_ms": 0.0} for prediction in unrefined]
+
     def stands(answer: RegistrationResult) -> tuple[RegistrationResult, list, None, list]:
-        spent = paid + [other.timings_ms for other in refined]
+        spent = paid + [other.timings_ms for other in refined] + unpaid()
         _charged(answer, [timings for timings in spent if timings is not answer.timings_ms])
         if not refined:  # the guess alone confirmed it: its time still counts
             answer.timings_ms["postprocess_ms"] += features.seconds * 1000.0
         return answer, [], None, []
 
     def set_aside() -> tuple[None, list, RegistrationResult | None, list[RegistrationResult]]:
-        unpaid = [_model_timings([prediction]) | {"postprocess_ms": 0.0} for prediction in unrefined]
         kept = [answer for answer in finished if answer.verified]
         spent = [timings for timings in paid if all(timings is not answer.timings_ms for answer in kept)]
-        return None, spent + unpaid, refined[0] if refined else None, kept
+        return None, spent + unpaid(), refined[0] if refined else None, kept
 
     own_prediction, near = await ask(np.eye(3))
     own = await finish(own_prediction, np.eye(3)) if near else None
@@ -828,7 +848,11 @@ async def _confirmed_draft(
     chosen = await finish(prediction, start)
     if not (chosen.verified and await confirmed(chosen)):
         return set_aside()
-    own = own or await finish(own_prediction, np.eye(3))  # refined, it may contradict the guess's answer
+    if own is None:  # set aside far from the guess: refined, it may contradict the guess's answer
+        may_contradict = _rival_test(prepared, [chosen], CONTRADICTING_LOOSE_SHARE)
+        if not may_contradict(*_user_transform(prepared, own_prediction, np.eye(3))):
+            return stands(chosen)
+        own = await finish(own_prediction, np.eye(3))
     if _unless_contradicted(chosen, [chosen, own]).verified:
         return stands(chosen)
     if own.verified:  # two verified answers apart: the clouds fit both, whatever else is asked

@@ -266,12 +266,15 @@ def test_a_verified_draft_answer_the_guess_is_too_coarse_to_confirm_is_confirmed
 def test_auto_asks_the_draft_again_from_feature_matchings_guess_for_a_turn_beyond_its_reach(real_scans, monkeypatch):
     """A pair turned 150 deg: the draft, asked for the source as it lies, answers far from the
     guess; asked again for the source turned by the guess (3 deg off), it gives the answer, refined
-    and confirmed. Its first answer, refined, fits too poorly to contradict it. The model is not asked."""
+    and confirmed. Its first answer fits too poorly to contradict it: it is not even refined, but its
+    call is paid for. The model is not asked."""
     from service import registration
 
     truth = euler_to_matrix([150.0, 40.0, -70.0])
     guess = euler_to_matrix([3.0, 0.0, 0.0]) @ truth
     monkeypatch.setattr(registration, "feature_match", lambda *args: (guess, TRUE_TRANSLATION))
+    checked, check = [], registration._checked
+    monkeypatch.setattr(registration, "_checked", lambda *args: checked.append(args[1]) or check(*args))
     turns, model_turns = [], []
     options, settings, _ = pipeline_inputs(None, None, method="auto", init=INIT)
     draft = Network("object", 384, limited_reach(turns), "draft")
@@ -282,6 +285,7 @@ def test_auto_asks_the_draft_again_from_feature_matchings_guess_for_a_turn_beyon
     assert len(turns) == 2 and turns[0] > 45.0 and turns[1] == pytest.approx(3.0, abs=0.01) and model_turns == []
     assert (result.stage, result.verified) == ("draft", True)
     assert rotation_angle_deg(result.rotation, truth) < 0.01
+    assert len(checked) == 1 and rotation_angle_deg(checked[0], truth) < 10.0  # only the answer from the guess's turn
     assert result.timings_ms["inference_ms"] == 2.0
 
 
