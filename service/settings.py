@@ -85,7 +85,7 @@ class Settings(BaseSettings):
     max_cloud_points: int = Field(500_000, ge=1, description="Most points one cloud may have.")
     max_network_points: int = Field(2048, ge=8, description="Largest per-request `network_points`.")
     fps_max_input_points: int = Field(
-        32_768,
+        8_192,
         ge=1024,
         description="Farthest-point sampling of larger clouds starts from a seeded random subset of this size.",
     )
