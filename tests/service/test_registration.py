@@ -190,7 +190,8 @@ def test_auto_asks_the_draft_first_and_keeps_its_answer_only_where_feature_match
     assert confirmed.refinement is not None  # a draft's answer is always refined
     assert rotation_angle_deg(confirmed.rotation, TRUE_ROTATION) < 0.01
 
-    monkeypatch.setattr(registration, "feature_match", lambda *args: (np.eye(3), np.zeros(3)))  # disagrees
+    far = TRUE_TRANSLATION + 10.0 * radius(source)  # no turn, and far off: refined, it fails the check
+    monkeypatch.setattr(registration, "feature_match", lambda *args: (np.eye(3), far))  # disagrees
     checked, check = [], registration._checked
     monkeypatch.setattr(registration, "_checked", lambda *args: checked.append(args[1]) or check(*args))
     unconfirmed = run("auto", target)
