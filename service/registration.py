@@ -108,8 +108,9 @@ AGREEMENT_DEG = 5.0  # two fitting answers further apart than this contradict ea
 # from where feature matching's guess puts it may have slid off the truth: the guess's turn alone
 # does not confirm it (_confirmed_draft).
 UNPINNED_AGREEMENT_SHARE = 0.05
-# Under `auto`, an unpinned answer matching at least this share of the source leaves the rotated starts
-# nothing to find: on tabletop scenes they only added flips fitting a little better (service/README.md).
+# Under `auto`, an unpinned answer matching at least this share of the source leaves the next models and
+# the rotated starts nothing to find: on tabletop scenes they only added answers the clouds pin down no
+# better, or flips fitting a little better (service/README.md).
 UNPINNED_FITNESS = 0.85
 # A draft's answer further than this from feature matching's guess is set aside unrefined: refinement
 # would not bring the two within AGREEMENT_DEG (a draft's answer is 4-15 deg off on ModelNet, median).
@@ -612,7 +613,8 @@ async def register_clouds(
     normalised float32 clouds [network_points, 3] and returns the transform between them.
     `options.method` picks the path: the first network (`ifnet`), the global search with the first
     network (`global`), or the networks in turn (the first one's draft before it) until an answer
-    passes the check and, when none does, the global search (`auto`). The CPU-heavy steps run
+    passes the check, or fails it only on its constraint matching most of the source (UNPINNED_FITNESS),
+    and, when none does, the global search (`auto`). The CPU-heavy steps run
     through `run_blocking` (a worker thread by default) so that the event loop keeps serving;
     refinement and the check run on `threads`. Raises InvalidInput for
     clouds that cannot be registered.
@@ -696,7 +698,7 @@ async def _answer(
                 asked = []
         for network in asked:
             answers.append(await ask(network))
-            if answers[-1].verified:
+            if answers[-1].verified or (auto and _settled_unpinned(answers[-1])):
                 break
         answers += unconfirmed  # the draft's verified answers feature matching did not confirm: judged with the rest
         if options.method == "ifnet" and not answers[0].verified:
@@ -717,8 +719,7 @@ async def _answer(
     # and a start's unverified answer replaces an unpinned one only where it fits clearly better.
     if options.method != "ifnet":
         verified = [answer for answer in answers if answer.verified]
-        unpinned = [answer for answer in answers if answer.unpinned and answer.score.fitness >= UNPINNED_FITNESS]
-        if verified or not (auto and unpinned):
+        if verified or not (auto and any(_settled_unpinned(answer) for answer in answers)):
             found, cost = await _judged_by_starts(base, first, verified, options, run_blocking)
             answers += _fitting_clearly_better(found, answers) if auto and not verified else found
             discarded.append(cost)
@@ -859,6 +860,12 @@ async def _confirmed_draft(
         candidates = [chosen, own, *refined]
         return stands(_unless_contradicted(max(candidates, key=_rank), candidates))
     return set_aside()
+
+
+def _settled_unpinned(answer: RegistrationResult) -> bool:
+    """The answer fails the check only on its constraint and matches at least UNPINNED_FITNESS of the
+    source: under `auto` the search (the next models, the rotated starts) ends there."""
+    return answer.unpinned and answer.score.fitness >= UNPINNED_FITNESS
 
 
 def _turned(answer: RegistrationResult, prepared: _Prepared) -> bool:

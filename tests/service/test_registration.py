@@ -368,7 +368,10 @@ def tabletop_answer(monkeypatch, guess_turn_deg: float):
     asked = []
     options, settings, _ = pipeline_inputs(None, None, method="auto")
     draft = Network("object", 384, recording(asked, "draft"), "draft")
-    networks = [Network("object", 768, recording(asked, "model"), draft=draft)]
+    networks = [
+        Network("object", 768, recording(asked, "model"), draft=draft),
+        Network("indoor", 768, recording(asked, "indoor")),
+    ]
     target = apply_transform(points, truth, np.zeros(3))
     return asyncio.run(register_clouds(points, target, options, settings, networks)), asked, truth
 
@@ -396,15 +399,16 @@ def test_an_unpinned_draft_answer_stands_unverified_where_feature_matching_agree
 def test_an_unpinned_answer_matching_most_of_the_source_ends_the_search(monkeypatch, fitness_needed):
     """Feature matching's guess disagrees with the draft's unpinned answer, so the model is asked: its
     answer, right, fails the check only on its constraint and matches the whole source. Under `auto`
-    the rotated starts do not search then (on tabletops they only added flips fitting a little
-    better); where the answer matches less than UNPINNED_FITNESS of the source, they do."""
+    neither the next model nor the rotated starts search then (on tabletops they only added answers
+    pinned no better, or flips fitting a little better); where the answer matches less than
+    UNPINNED_FITNESS of the source, they do."""
     from service import registration
 
     monkeypatch.setattr(registration, "UNPINNED_FITNESS", fitness_needed)
     result, asked, truth = tabletop_answer(monkeypatch, 90.0)
     searched = asked.count(("draft", 384)) >= len(registration.STARTS)
     assert ("model", 768) in asked and not result.verified and "pin" in result.reason
-    assert searched == (fitness_needed > 1.0)
+    assert searched == (fitness_needed > 1.0) and (("indoor", 768) in asked) == searched
     if not searched:
         assert result.stage == "ifnet" and rotation_angle_deg(result.rotation, truth) < 0.5
 
