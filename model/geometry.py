@@ -639,10 +639,21 @@ FEATURE_MIN_DESCRIBED = 8
 FEATURE_DESCRIBED_SAMPLES = (64, 1_000)
 
 
+def occupied_voxels(points: np.ndarray, voxel: float) -> np.ndarray:
+    """The distinct voxels (of side `voxel`) holding the points, as integer coordinates in voxel units."""
+    cells = np.floor(points / voxel).astype(np.int64)
+    cells -= cells.min(axis=0)
+    span = cells.max(axis=0) + 1
+    if float(np.prod(span.astype(np.float64))) >= 2.0**62:  # one int64 key per voxel would overflow
+        return np.unique(cells, axis=0)
+    keys = (cells[:, 0] * span[1] + cells[:, 1]) * span[2] + cells[:, 2]  # several times faster to sort than rows
+    return cells[np.unique(keys, return_index=True)[1]]
+
+
 def describable(points: np.ndarray, voxel: float) -> bool:
     """The cloud has at least FEATURE_MIN_DESCRIBED voxels (of side `voxel`) with two other occupied
     voxels whose centres lie within FEATURE_NORMAL_VOXELS of their own: enough for KISS-Matcher."""
-    keys = np.unique(np.floor(points / voxel), axis=0)  # occupied voxels, in voxel units
+    keys = occupied_voxels(points, voxel)
     if len(keys) < FEATURE_MIN_DESCRIBED:
         return False
     tree, order = cKDTree(keys), np.random.default_rng(0).permutation(len(keys))

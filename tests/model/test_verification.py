@@ -265,6 +265,19 @@ def test_feature_matching_passes_over_clouds_it_cannot_describe_instead_of_crash
     assert done.stdout.strip() == "True"
 
 
+@pytest.mark.parametrize("far", [0.0, 1e7], ids=["one-key-per-voxel", "too-wide-for-one-key"])
+def test_occupied_voxels_are_the_distinct_voxel_rows(far):
+    """One int64 key per voxel, or rows where the cloud is too wide for such keys: the same voxels."""
+    from model.geometry import occupied_voxels
+
+    rng = np.random.default_rng(4)
+    points = np.concatenate([rng.normal(size=(3000, 3)), rng.normal(size=(50, 3)) + far])
+    found = occupied_voxels(points, 0.05)
+    rows = np.unique(np.floor(points / 0.05), axis=0)
+    assert np.array_equal(np.unique(found, axis=0), (rows - rows.min(axis=0)).astype(np.int64))
+    assert len(found) == len(rows) < len(points)
+
+
 def test_the_describable_rule_follows_kiss_matchers_normal_radius():
     kiss_matcher = pytest.importorskip("kiss_matcher")
     from model.geometry import FEATURE_NORMAL_VOXELS, FEATURE_VOXEL
