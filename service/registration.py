@@ -476,7 +476,7 @@ def _rivals(
     source = subset(check.source, STARTS_SCORE_POINTS)  # drawn once for every coarse answer
     ranked = [(check.fitness(source, *pose, INLIER_SPACINGS), *pose) for pose in coarse]
     if settled:
-        rival = _rival_test(prepared, settled)
+        rival = _rival_test(check, source, settled)
         ranked = [entry for entry in ranked if rival(*entry[1:])]
     ranked.sort(key=lambda entry: -entry[0])
     refine_options = options.refine or RefineOptions()  # coarse answers: every candidate is refined
@@ -488,13 +488,15 @@ def _rivals(
 
 
 def _rival_test(
-    prepared: _Prepared, settled: Sequence[RegistrationResult], share: float = RIVAL_LOOSE_SHARE
+    check: AlignmentClouds,
+    source: np.ndarray,
+    settled: Sequence[RegistrationResult],
+    share: float = RIVAL_LOOSE_SHARE,
 ) -> Callable[[np.ndarray, np.ndarray], bool]:
     """Whether a coarse answer (R, t) may be a rival of the verified answers `settled`, worth refining to
     judge them: further than RIVAL_REACH_DEG from each (nearer ones settle on it), fitting at least
-    `share` as well as the best of them at LOOSE_SPACINGS."""
-    check = prepared.check
-    source = subset(check.source, STARTS_SCORE_POINTS)
+    `share` as well as the best of them at LOOSE_SPACINGS, on `source` (the check's STARTS_SCORE_POINTS
+    source points)."""
 
     def loose(rotation: np.ndarray, translation: np.ndarray) -> float:
         return check.fitness(source, rotation, translation, LOOSE_SPACINGS)
@@ -850,7 +852,8 @@ async def _confirmed_draft(
     if not (chosen.verified and await confirmed(chosen)):
         return set_aside()
     if own is None:  # set aside far from the guess: refined, it may contradict the guess's answer
-        may_contradict = _rival_test(prepared, [chosen], CONTRADICTING_LOOSE_SHARE)
+        scored = subset(prepared.check.source, STARTS_SCORE_POINTS)
+        may_contradict = _rival_test(prepared.check, scored, [chosen], CONTRADICTING_LOOSE_SHARE)
         if not may_contradict(*_user_transform(prepared, own_prediction, np.eye(3))):
             return stands(chosen)
         own = await finish(own_prediction, np.eye(3))
