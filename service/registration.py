@@ -96,7 +96,7 @@ RIVAL_LOOSE_SHARE = 0.8
 # from the guess's turn only where it fits loosely at least this share as well: refined, those fitting
 # less never contradicted it, and refining them cost most on large scans (service/README.md).
 CONTRADICTING_LOOSE_SHARE = 0.4
-STARTS_SCORE_POINTS = 2_000  # source points that rank the starts' coarse answers
+STARTS_SCORE_POINTS = 2_000  # check source points that rank coarse answers (starts, half turns, slides)
 # Points per cloud of the starts' network calls: a coarse answer each, which refinement settles;
 # each call costs about 0.4x one at the network's 768 points.
 STARTS_POINTS = 384
@@ -247,6 +247,7 @@ class _Prepared:
     points: CloudReports
     check: AlignmentClouds  # at most CHECK_MAX_POINTS of each cloud: what refinement and the check use
     coarse: AlignmentClouds  # at most COARSE_POINTS of each of those: the refinement's coarse pass
+    scored: np.ndarray  # at most STARTS_SCORE_POINTS of the check's source: they rank coarse answers
     samplers: dict[str, CloudSampler]  # per cloud: another count extends this one's farthest points
     seconds: float
 
@@ -285,8 +286,9 @@ def _prepare(
             coarse = AlignmentClouds(
                 subset(source_check, COARSE_POINTS), subset(target_check, COARSE_POINTS), check.spacing
             )
+        scored = subset(source_check, STARTS_SCORE_POINTS)
     else:
-        check, coarse = base.check, base.coarse
+        check, coarse, scored = base.check, base.coarse, base.scored
     return _Prepared(
         source=clouds["source"],
         target=clouds["target"],
@@ -297,6 +299,7 @@ def _prepare(
         points=CloudReports(**reports),
         check=check,
         coarse=coarse,
+        scored=scored,
         samplers=samplers,
         seconds=time.perf_counter() - started,
     )
@@ -472,11 +475,10 @@ def _rivals(
 ) -> list[_Candidate]:
     """The best few coarse answers by fitness, each refined and checked. With verified answers to
     judge (`settled`), only their rivals: none, where no coarse answer fits loosely as well."""
-    check = prepared.check
-    source = subset(check.source, STARTS_SCORE_POINTS)  # drawn once for every coarse answer
-    ranked = [(check.fitness(source, *pose, INLIER_SPACINGS), *pose) for pose in coarse]
+    check, scored = prepared.check, prepared.scored
+    ranked = [(check.fitness(scored, *pose, INLIER_SPACINGS), *pose) for pose in coarse]
     if settled:
-        rival = _rival_test(check, source, settled)
+        rival = _rival_test(prepared, settled)
         ranked = [entry for entry in ranked if rival(*entry[1:])]
     ranked.sort(key=lambda entry: -entry[0])
     refine_options = options.refine or RefineOptions()  # coarse answers: every candidate is refined
@@ -488,18 +490,14 @@ def _rivals(
 
 
 def _rival_test(
-    check: AlignmentClouds,
-    source: np.ndarray,
-    settled: Sequence[RegistrationResult],
-    share: float = RIVAL_LOOSE_SHARE,
+    prepared: _Prepared, settled: Sequence[RegistrationResult], share: float = RIVAL_LOOSE_SHARE
 ) -> Callable[[np.ndarray, np.ndarray], bool]:
     """Whether a coarse answer (R, t) may be a rival of the verified answers `settled`, worth refining to
     judge them: further than RIVAL_REACH_DEG from each (nearer ones settle on it), fitting at least
-    `share` as well as the best of them at LOOSE_SPACINGS, on `source` (the check's STARTS_SCORE_POINTS
-    source points)."""
+    `share` as well as the best of them at LOOSE_SPACINGS, on the pair's scoring points."""
 
     def loose(rotation: np.ndarray, translation: np.ndarray) -> float:
-        return check.fitness(source, rotation, translation, LOOSE_SPACINGS)
+        return prepared.check.fitness(prepared.scored, rotation, translation, LOOSE_SPACINGS)
 
     bar = share * max(loose(answer.rotation, answer.translation) for answer in settled)
 
@@ -548,10 +546,9 @@ def _unless_slid(
     small = AlignmentClouds(
         subset(check.source, SLIDE_POINTS), subset(check.target, SLIDE_POINTS), check.spacing, threads=check.threads
     )
-    scored = subset(check.source, STARTS_SCORE_POINTS)
 
     def fit(rotation: np.ndarray, translation: np.ndarray) -> float:
-        return check.fitness(scored, rotation, translation, INLIER_SPACINGS)
+        return check.fitness(prepared.scored, rotation, translation, INLIER_SPACINGS)
 
     def returned(rotation: np.ndarray, translation: np.ndarray) -> bool:
         """Back beside the answer: the finer pass would settle it there, where it fits no better."""
@@ -852,8 +849,7 @@ async def _confirmed_draft(
     if not (chosen.verified and await confirmed(chosen)):
         return set_aside()
     if own is None:  # set aside far from the guess: refined, it may contradict the guess's answer
-        scored = subset(prepared.check.source, STARTS_SCORE_POINTS)
-        may_contradict = _rival_test(prepared.check, scored, [chosen], CONTRADICTING_LOOSE_SHARE)
+        may_contradict = _rival_test(prepared, [chosen], CONTRADICTING_LOOSE_SHARE)
         if not may_contradict(*_user_transform(prepared, own_prediction, np.eye(3))):
             return stands(chosen)
         own = await finish(own_prediction, np.eye(3))
