@@ -229,13 +229,21 @@ def resample_indices(
     return np.concatenate([np.arange(num_points), extra])
 
 
+def cell_keys(cells: np.ndarray) -> np.ndarray:
+    """One int64 key per row of non-negative integer cells [N, 3]: equal for equal rows and ordered as
+    the rows sort. Several times faster to sort than the rows; where a packed key would overflow, the
+    rows' rank among the distinct rows."""
+    span = cells.max(axis=0) + 1
+    if float(np.prod(span.astype(np.float64))) >= 2.0**62:
+        return np.unique(cells, axis=0, return_inverse=True)[1].ravel()
+    return (cells[:, 0] * span[1] + cells[:, 1]) * span[2] + cells[:, 2]
+
+
 def voxel_downsample(points: np.ndarray, size: float) -> np.ndarray:
     """One point per occupied cube of side `size`: the centroid of the points inside it."""
-    keys = np.floor((points - points.min(axis=0)) / size).astype(np.int64)
-    _, cell, counts = np.unique(keys, axis=0, return_inverse=True, return_counts=True)
-    cell = cell.ravel()
-    sums = np.zeros((len(counts), 3))
-    np.add.at(sums, cell, points)
+    cells = np.floor((points - points.min(axis=0)) / size).astype(np.int64)
+    _, cell, counts = np.unique(cell_keys(cells), return_inverse=True, return_counts=True)
+    sums = np.stack([np.bincount(cell, weights=points[:, axis], minlength=len(counts)) for axis in range(3)], axis=1)
     return sums / counts[:, None]
 
 
@@ -643,11 +651,7 @@ def occupied_voxels(points: np.ndarray, voxel: float) -> np.ndarray:
     """The distinct voxels (of side `voxel`) holding the points, as integer coordinates in voxel units."""
     cells = np.floor(points / voxel).astype(np.int64)
     cells -= cells.min(axis=0)
-    span = cells.max(axis=0) + 1
-    if float(np.prod(span.astype(np.float64))) >= 2.0**62:  # one int64 key per voxel would overflow
-        return np.unique(cells, axis=0)
-    keys = (cells[:, 0] * span[1] + cells[:, 1]) * span[2] + cells[:, 2]  # several times faster to sort than rows
-    return cells[np.unique(keys, return_index=True)[1]]
+    return cells[np.unique(cell_keys(cells), return_index=True)[1]]
 
 
 def describable(points: np.ndarray, voxel: float) -> bool:

@@ -105,11 +105,12 @@ def test_a_teachers_pose_a_fifth_of_a_degree_off_still_teaches_and_one_three_deg
     assert not shared_points_coincide(off_by(3.0), target)
 
 
-def test_voxel_downsampling_keeps_one_centroid_per_occupied_cell():
-    points = np.array([[0.0, 0, 0], [0.2, 0, 0], [1.1, 0, 0], [1.2, 0.1, 0], [5, 5, 5]])
+@pytest.mark.parametrize("far", [5.0, 1e18], ids=["one-key-per-cell", "too-wide-for-one-key"])
+def test_voxel_downsampling_keeps_one_centroid_per_occupied_cell(far):
+    points = np.array([[0.0, 0, 0], [0.2, 0, 0], [1.1, 0, 0], [1.2, 0.1, 0], [far, far, 5]])
     cells = voxel_downsample(points, 1.0)
     assert len(cells) == 3
-    np.testing.assert_allclose(sorted(cells[:, 0]), [0.1, 1.15, 5.0])
+    np.testing.assert_allclose(cells, [[0.1, 0, 0], [1.15, 0.05, 0], [far, far, 5]])  # in the cells' order
 
 
 def test_network_view_samples_and_normalises_like_the_service():
