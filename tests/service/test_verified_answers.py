@@ -489,19 +489,11 @@ def test_an_answer_of_the_rotated_starts_needs_a_closer_fit(monkeypatch):
 def test_probes_that_come_back_to_the_answer_stop_after_their_coarse_pass(monkeypatch):
     """Beside a right answer most probes' coarse pass leads back to it: their fine pass, which would
     settle them there, is skipped, and every pass of a probe stops at SLIDE_ITERATIONS."""
-    from model.geometry import AlignmentClouds
     from service import registration
 
     prepared, options, rotation, translation = two_captures(stepped_wall)
     answer = checked_answer(prepared, options, rotation, translation)
-    calls = []
-    refine = AlignmentClouds.refine
-
-    def counted(self, *args, **kwargs):
-        calls.append((len(self.source), kwargs.get("max_iterations")))
-        return refine(self, *args, **kwargs)
-
-    monkeypatch.setattr(AlignmentClouds, "refine", counted)
+    calls = small_refinements(monkeypatch)
     assert registration._unless_slid(prepared, answer, options, None) is answer
     probes = len(
         slides(answer.translation, prepared.check.target, registration.SLIDE_SHARES, registration.SLIDE_DIAGONAL_SHARES)
@@ -512,19 +504,19 @@ def test_probes_that_come_back_to_the_answer_stop_after_their_coarse_pass(monkey
 
 
 def small_refinements(monkeypatch):
-    """The sizes of the clouds AlignmentClouds.refine runs on from now on: the slide check's probes run on
-    SLIDE_POINTS."""
+    """The AlignmentClouds.refine calls from now on, as (source points, iteration cap): the slide check's
+    probes run on SLIDE_POINTS."""
     from model.geometry import AlignmentClouds
 
-    sizes = []
+    calls = []
     refine = AlignmentClouds.refine
 
     def counted(self, *args, **kwargs):
-        sizes.append(len(self.source))
+        calls.append((len(self.source), kwargs.get("max_iterations")))
         return refine(self, *args, **kwargs)
 
     monkeypatch.setattr(AlignmentClouds, "refine", counted)
-    return sizes
+    return calls
 
 
 def test_feature_matching_landing_on_an_answer_it_did_not_start_spares_the_look_beside_it(monkeypatch):
@@ -555,7 +547,7 @@ def test_feature_matching_landing_on_an_answer_it_did_not_start_spares_the_look_
     assert not probed
     for judged, near in [(answer, guess(0.02)), (dataclasses.replace(answer, stage="features"), guess(0.005))]:
         assert registration._unless_slid(prepared, judged, options, near) is judged
-        assert sum(size <= registration.SLIDE_POINTS for size in probed) >= len(registration.SLIDE_SHARES) * 6
+        assert sum(size <= registration.SLIDE_POINTS for size, _ in probed) >= len(registration.SLIDE_SHARES) * 6
         probed.clear()
 
 
