@@ -10,11 +10,13 @@ from fastapi import Depends, Header, HTTPException, Request
 from service.state import ServiceState
 
 
-def get_service(request: Request) -> ServiceState:
+# Dependencies that never block are `async def`: FastAPI runs a plain `def` one on its thread pool,
+# a hand-over per dependency and request.
+async def get_service(request: Request) -> ServiceState:
     return request.app.state.service
 
 
-def get_loaded_service(service: Annotated[ServiceState, Depends(get_service)]) -> ServiceState:
+async def get_loaded_service(service: Annotated[ServiceState, Depends(get_service)]) -> ServiceState:
     """The service once its models are loaded (requests queue during warm-up and run after it)."""
     if not service.models:
         raise HTTPException(503, "the models are not loaded yet; retry shortly", headers={"Retry-After": "1"})
@@ -40,7 +42,7 @@ async def admit(service: Annotated[ServiceState, Depends(get_loaded_service)]) -
         service.in_flight -= 1
 
 
-def require_api_key(
+async def require_api_key(
     service: Annotated[ServiceState, Depends(get_service)],
     x_api_key: Annotated[str | None, Header(description="The API key, if the service requires one.")] = None,
     authorization: Annotated[str | None, Header(description="Alternatively `Bearer <API key>`.")] = None,
