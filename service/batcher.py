@@ -61,6 +61,8 @@ class _Pending:
     source: np.ndarray
     target: np.ndarray
     future: asyncio.Future
+    beside: bool = False  # its caller does CPU work of its own meanwhile (Engine.run)
+    began: asyncio.Event = field(default_factory=asyncio.Event)  # set when a thread takes its call up
     enqueued_at: float = field(default_factory=time.perf_counter)
     taken: bool = False
 
@@ -155,17 +157,40 @@ class MicroBatcher:
         Raises QueueFullError when the queue is full, RequestTimeoutError after timeout_s, and
         ShuttingDownError once close() has begun. Cancelling the caller drops the pair.
         """
+        return await self._answer(self._enqueue(source, target, beside=False), timeout_s)
+
+    async def start_beside(self, source: np.ndarray, target: np.ndarray) -> "asyncio.Task[Prediction]":
+        """Queue one pair whose caller does CPU work of its own while the model runs, and return once
+        a thread has taken its call up (to run on the threads of a call beside others), with the task
+        of its answer: work the caller starts before that would hold the call back. Raises as submit
+        does; cancelling the task drops the pair."""
+        pending = self._enqueue(source, target, beside=True)
+        answer = asyncio.ensure_future(self._answer(pending, None))
+        began = asyncio.ensure_future(pending.began.wait())
+        try:
+            await asyncio.wait({answer, began}, return_when=asyncio.FIRST_COMPLETED)  # or it failed first
+        except asyncio.CancelledError:
+            answer.cancel()
+            raise
+        finally:
+            began.cancel()
+        return answer
+
+    def _enqueue(self, source: np.ndarray, target: np.ndarray, beside: bool) -> _Pending:
         if self._closing:
             raise ShuttingDownError("the service is shutting down")
         if self._waiting >= self.max_queue_size:
             self._reject("queue_full")
             raise QueueFullError(self.retry_after_s())
-        pending = _Pending(source, target, asyncio.get_running_loop().create_future())
+        pending = _Pending(source, target, asyncio.get_running_loop().create_future(), beside)
         pending.future.add_done_callback(lambda _: self._forget(pending))
         self._waiting += 1
         self._idle.clear()
         self._update_depth()
         self._queue.put_nowait(pending)
+        return pending
+
+    async def _answer(self, pending: _Pending, timeout_s: float | None) -> Prediction:
         try:
             return await asyncio.wait_for(pending.future, timeout_s)
         except TimeoutError:
@@ -235,7 +260,8 @@ class MicroBatcher:
                 pending.future.set_exception(error)
 
     async def _run(self, batch: list[_Pending]) -> None:
-        # Pairs stack only when their point counts agree (requests may choose network_points).
+        # Pairs stack only when their point counts agree (requests may choose network_points), and a
+        # batch runs beside its callers' work if any of them asked.
         groups: dict[tuple, list[_Pending]] = defaultdict(list)
         for pending in batch:
             groups[(pending.source.shape, pending.target.shape)].append(pending)
@@ -248,7 +274,11 @@ class MicroBatcher:
             source = np.stack([pending.source for pending in items])
             target = np.stack([pending.target for pending in items])
             try:
-                rotation, translation = await loop.run_in_executor(self._executor, self.engine.run, source, target)
+                beside = any(pending.beside for pending in items)
+                began = [pending.began for pending in items]
+                rotation, translation = await loop.run_in_executor(
+                    self._executor, self._call, loop, began, source, target, beside
+                )
                 rotation, translation = np.asarray(rotation), np.asarray(translation)
                 if rotation.shape != (len(items), 3, 3) or translation.shape != (len(items), 3):
                     raise InferenceError(
@@ -278,6 +308,13 @@ class MicroBatcher:
                             batch_size=len(items),
                         )
                     )
+
+    def _call(self, loop, began: list[asyncio.Event], source, target, beside: bool) -> tuple[np.ndarray, np.ndarray]:
+        """The model call, on the executor's thread, which tells its callers first that it has taken
+        the call up."""
+        for event in began:
+            loop.call_soon_threadsafe(event.set)
+        return self.engine.run(source, target, beside)
 
     def _check_idle(self) -> None:
         if self._waiting == 0 and self._running == 0:

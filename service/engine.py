@@ -66,8 +66,9 @@ class Engine(Protocol):
 
     info: ModelInfo
 
-    def run(self, source: np.ndarray, target: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """[B, N, 3] and [B, M, 3] float32 -> rotations [B, 3, 3] and translations [B, 3]."""
+    def run(self, source: np.ndarray, target: np.ndarray, beside: bool = False) -> tuple[np.ndarray, np.ndarray]:
+        """[B, N, 3] and [B, M, 3] float32 -> rotations [B, 3, 3] and translations [B, 3]; `beside`:
+        the caller does CPU work of its own while the call runs."""
         ...
 
 
@@ -212,9 +213,11 @@ class OnnxEngine:
         """The session of a call that runs alone (all `threads`); every session has its inputs and metadata."""
         return self._sessions[0]
 
-    def run(self, source: np.ndarray, target: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def run(self, source: np.ndarray, target: np.ndarray, beside: bool = False) -> tuple[np.ndarray, np.ndarray]:
+        """The call on all `threads` where it runs alone, else (or `beside` its caller's own work) on
+        the threads of a call beside others."""
         with self.running.call() as alone:
-            return self._run(self._sessions[0] if alone else self._sessions[-1], source, target)
+            return self._run(self._sessions[0] if alone and not beside else self._sessions[-1], source, target)
 
     def warm_up(self, source: np.ndarray, target: np.ndarray) -> None:
         """One call on every session, so that neither pays its first-call cost on a request."""

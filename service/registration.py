@@ -163,6 +163,9 @@ class Network:
     predict: Predict  # normalised clouds -> transform (in production: the model's batcher)
     stage: Stage = "ifnet"  # "draft" for a model's draft network
     draft: "Network | None" = None  # asked before this one by `auto`, when this one is asked first
+    # Starts a call that runs while the request does CPU work of its own (on fewer threads) and returns
+    # once it has begun, with the future of its answer (None: predict's call, as a task).
+    start_beside: Callable[[np.ndarray, np.ndarray], Awaitable["asyncio.Future[Prediction]"]] | None = None
 
 
 @dataclass(frozen=True)
@@ -671,10 +674,20 @@ async def _answer(
         asked = networks if auto else networks[:1]
         if auto and first.draft is not None:
             # A draft's answer stands only where feature matching, an independent method, agrees; the
-            # guess is needed on every path of `auto`, so it comes first.
-            features = await run_blocking(_feature_guess, base)
+            # guess is needed on every path of `auto`, so it comes first, with the draft's first call
+            # (which needs only the prepared clouds) running beside it.
+            clouds = base.source_network, base.target_network
+            if first.draft.start_beside is not None:
+                first_call = await first.draft.start_beside(*clouds)
+            else:
+                first_call = asyncio.ensure_future(first.draft.predict(*clouds))
+            try:
+                features = await run_blocking(_feature_guess, base)
+            except BaseException:
+                first_call.cancel()
+                raise
             draft, paid, features_answer, unconfirmed = await _confirmed_draft(
-                base, features, first.draft, options, run_blocking
+                base, features, first.draft, options, run_blocking, first_call
             )
             if draft is not None and draft.verified and (options.init is not None or _turned(draft, base)):
                 # Asked from the user's guess or at feature matching's turn, either of which may be a
@@ -759,14 +772,15 @@ async def _confirmed_draft(
     draft: Network,
     options: RegistrationOptions,
     run_blocking: RunBlocking,
+    first_call: "asyncio.Future[Prediction]",
 ) -> tuple[RegistrationResult | None, list[dict[str, float]], RegistrationResult | None, list[RegistrationResult]]:
     """The draft's answer where feature matching confirms it, else None and the timings of the
     draft's answers set aside (paid for, but no candidate); the guess refined and checked when that
     was needed, and the draft's verified answers set aside: candidates of the rest of the pipeline,
     which judges them with its own (an answer the guess does not confirm may still be right).
 
-    The draft is asked for the source as it lies and, unless that answer is verified, again for
-    the source turned by the guess: the network knows turns of up to 45 deg, the guess any turn.
+    The draft is asked for the source as it lies (`first_call`, already made) and, unless that answer
+    is verified, again for the source turned by the guess: the network knows turns of up to 45 deg, the guess any turn.
     A verified answer is confirmed by the guess within AGREEMENT_DEG of it or, where the guess is
     too coarse for that (a few degrees off on noisy clouds), by the guess refined and checked. An
     answer from the guess lies near it by construction, so it stands only if the first answer,
@@ -784,9 +798,10 @@ async def _confirmed_draft(
     refined: list[RegistrationResult] = []  # the guess refined and checked, once needed
     finished: list[RegistrationResult] = []  # the draft's answers refined and checked
 
-    async def ask(start: np.ndarray) -> tuple[Prediction, bool]:
-        turned = (prepared.source_network @ start.T).astype(np.float32)
-        prediction = await draft.predict(turned, prepared.target_network)
+    async def ask(start: np.ndarray, call: Awaitable[Prediction] | None = None) -> tuple[Prediction, bool]:
+        if call is None:
+            call = draft.predict((prepared.source_network @ start.T).astype(np.float32), prepared.target_network)
+        prediction = await call
         rotation = _user_transform(prepared, prediction, start)[0]
         near = rotation_angle_deg(rotation, features.rotation) <= DRAFT_REACH_DEG
         if not near:
@@ -831,7 +846,7 @@ async def _confirmed_draft(
         spent = [timings for timings in paid if all(timings is not answer.timings_ms for answer in kept)]
         return None, spent + unpaid(), refined[0] if refined else None, kept
 
-    own_prediction, near = await ask(np.eye(3))
+    own_prediction, near = await ask(np.eye(3), first_call)
     own = await finish(own_prediction, np.eye(3)) if near else None
     if own is not None and own.verified:
         return stands(own) if await confirmed(own) else set_aside()  # else the guess contradicts it
@@ -972,7 +987,7 @@ def resolve_options(options: RegistrationOptions, service: ServiceState) -> tupl
         draft = None
         if model.draft is not None:
             draft_points = count or model.draft.engine.info.network_points
-            draft = Network(info.name, draft_points, model.draft.submit, "draft")
+            draft = Network(info.name, draft_points, model.draft.submit, "draft", start_beside=model.draft.start_beside)
         networks.append(Network(info.name, count or info.network_points, model.batcher.submit, draft=draft))
     return options.model_copy(update={"method": method}), networks
 

@@ -120,8 +120,9 @@ def tiny_model(tmp_path_factory) -> Path:
 class GatedEngine:
     """Wraps an engine; while `gate` is clear, model calls wait for it (warm-up included).
 
-    `calls` records the batch size of every call that went through; `entered` is set once a
-    call has reached the gate, and `at_gate` is the batch size of the call waiting there.
+    `calls` records the batch size of every call that went through and `besides` whether it ran
+    beside its callers' work; `entered` is set once a call has reached the gate, and `at_gate` is the
+    batch size of the call waiting there.
     """
 
     def __init__(self, engine, gated: bool = True):
@@ -130,18 +131,20 @@ class GatedEngine:
         self.gate = threading.Event()
         self.entered = threading.Event()
         self.calls: list[int] = []
+        self.besides: list[bool] = []
         self.at_gate = 0
         if not gated:
             self.gate.set()
 
-    def run(self, source: np.ndarray, target: np.ndarray):
+    def run(self, source: np.ndarray, target: np.ndarray, beside: bool = False):
         self.at_gate = len(source)
         self.entered.set()
         if not self.gate.wait(timeout=60):
             raise TimeoutError("the test never opened the gate")
         self.at_gate = 0
         self.calls.append(len(source))
-        return self.engine.run(source, target)
+        self.besides.append(beside)
+        return self.engine.run(source, target, beside)
 
 
 @pytest.fixture

@@ -645,7 +645,7 @@ async def test_a_failed_warm_up_fails_liveness_so_the_process_is_restarted(serve
         def __init__(self, engine):
             self.info = engine.info
 
-        def run(self, source, target):
+        def run(self, source, target, beside=False):
             raise RuntimeError("out of memory")
 
     engine = FailingWarmUp(OnnxEngine(tiny_model))

@@ -242,7 +242,7 @@ async def test_a_failing_model_call_is_a_500_and_the_worker_carries_on(serve, ti
             self.info = self.engine.info
             self.failures = 1
 
-        def run(self, source, target):
+        def run(self, source, target, beside=False):
             if self.failures:
                 self.failures -= 1
                 raise RuntimeError("simulated ORT failure")
@@ -293,7 +293,7 @@ async def test_queue_full_and_inference_errors_are_typed(tiny_model):
     class Broken:
         info = OnnxEngine(tiny_model).info
 
-        def run(self, source, target):
+        def run(self, source, target, beside=False):
             return np.zeros((1, 2, 2)), np.zeros((1, 3))  # wrong shapes
 
     batcher = MicroBatcher(Broken(), max_batch_size=1, max_queue_size=1)
@@ -309,6 +309,41 @@ async def test_queue_full_and_inference_errors_are_typed(tiny_model):
     await batcher.close(grace_s=1)
 
 
+async def test_start_beside_returns_once_its_call_is_taken_up_and_not_while_it_waits(tiny_model, gated_engine):
+    engine = gated_engine(OnnxEngine(tiny_model, threads=2, model_calls=2))
+    batcher = MicroBatcher(engine, max_batch_size=1, max_queue_size=4)
+    batcher.start()
+    rng = np.random.default_rng(5)
+    source, target = (rng.normal(size=(64, 3)).astype(np.float32) for _ in range(2))
+    held = asyncio.ensure_future(batcher.submit(source, target))
+    await wait_until(engine.entered.is_set, "the first call at the gate")
+    starting = asyncio.ensure_future(batcher.start_beside(source, target))
+    await wait_until(lambda: batcher.queue_depth == 1, "the second pair queued")
+    await asyncio.sleep(0.05)
+    assert not starting.done()  # its pair waits behind the held call: its work would run alone
+    engine.gate.set()
+    answer = await starting
+    prediction, first = await answer, await held
+    np.testing.assert_allclose(prediction.rotation, first.rotation, atol=1e-5)  # the same pair, fewer threads
+    assert engine.besides == [False, True]
+
+    # cancelled while its pair waits: the pair leaves the queue
+    engine.gate.clear()
+    engine.entered.clear()
+    held = asyncio.ensure_future(batcher.submit(source, target))
+    await wait_until(engine.entered.is_set, "the first call at the gate")
+    starting = asyncio.ensure_future(batcher.start_beside(source, target))
+    await wait_until(lambda: batcher.queue_depth == 1, "the second pair queued")
+    starting.cancel()
+    with pytest.raises(asyncio.CancelledError):
+        await starting
+    await wait_until(lambda: batcher.queue_depth == 0, "the cancelled pair gone from the queue")
+    engine.gate.set()
+    await held
+    assert engine.besides == [False, True, False]
+    await batcher.close(grace_s=1)
+
+
 async def test_model_calls_run_side_by_side_and_every_pair_gets_its_own_answer(tiny_model):
     engine = OnnxEngine(tiny_model, threads=2, model_calls=2)
     both_inside = threading.Barrier(2, timeout=30)  # breaks (a failed call) if calls never overlap
@@ -316,7 +351,7 @@ async def test_model_calls_run_side_by_side_and_every_pair_gets_its_own_answer(t
     class Paired:
         info = engine.info
 
-        def run(self, source, target):
+        def run(self, source, target, beside=False):
             both_inside.wait()
             return engine.run(source, target)
 
@@ -340,7 +375,7 @@ async def test_a_batch_delay_lets_a_batch_fill_up(tiny_model):
     class Recording:
         info = engine.info
 
-        def run(self, source, target):
+        def run(self, source, target, beside=False):
             calls.append(len(source))
             return engine.run(source, target)
 
@@ -387,7 +422,7 @@ class RecordingEngine:
         self.calls: list[int] = []
         self.sleep_s, self.gate = sleep_s, gate
 
-    def run(self, source, target):
+    def run(self, source, target, beside=False):
         if self.gate is not None:
             assert self.gate.wait(timeout=60), "the test never opened the gate"
         time.sleep(self.sleep_s)

@@ -123,6 +123,10 @@ def test_a_lone_call_runs_on_every_thread_and_calls_beside_it_on_their_share(tin
     engine.run(source, target)
     assert used == [2, 1, 2, 1, 2]
 
+    # a lone call beside its caller's own work (a draft's first call beside feature matching) gets a share
+    engine.run(source, target, beside=True)
+    assert used == [2, 1, 2, 1, 2, 1]
+
 
 @pytest.mark.anyio
 async def test_the_service_counts_its_requests_in_flight_where_its_engines_see_them(tiny_model):

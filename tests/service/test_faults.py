@@ -117,7 +117,7 @@ class StepEngine:
         self.gates = [threading.Event() for _ in range(8)]
         self.calls: list[int] = []
 
-    def run(self, source: np.ndarray, target: np.ndarray):
+    def run(self, source: np.ndarray, target: np.ndarray, beside: bool = False):
         index = len(self.calls)
         self.calls.append(len(source))
         if not self.gates[index].wait(timeout=60):

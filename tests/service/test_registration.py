@@ -229,6 +229,31 @@ def test_where_the_draft_fails_a_verified_guess_spares_the_models(real_scans):
     assert rotation_angle_deg(result.rotation, TRUE_ROTATION) < 0.01
 
 
+def test_the_drafts_first_call_is_under_way_before_feature_matching_starts(real_scans):
+    """`auto` starts the draft's call for the source as it lies (start_beside: on fewer threads, returning
+    once a thread runs it) before feature matching, which runs beside it; the call is not made again."""
+    events = []
+    source = real_scans["kitti_000008_fov"]
+    target = apply_transform(source, TRUE_ROTATION, TRUE_TRANSLATION)
+    options, settings, _ = pipeline_inputs(None, None, method="auto")
+    predict = recording([], "draft")
+
+    async def start_beside(source_n, target_n):
+        events.append("draft started beside")
+        return asyncio.ensure_future(predict(source_n, target_n))
+
+    async def run_blocking(function, *args):
+        events.append(function.__name__)
+        return function(*args)
+
+    draft = Network("object", 384, recording(events, "draft"), "draft", start_beside=start_beside)
+    networks = [Network("object", 768, recording(events, "model"), draft=draft)]
+    result = asyncio.run(register_clouds(source, target, options, settings, networks, run_blocking))
+    assert events[:3] == ["_prepare", "draft started beside", "_feature_guess"]
+    assert ("draft", 384) not in events  # the draft's answer as it lies came from that call
+    assert (result.stage, result.verified) == ("draft", True)
+
+
 def test_a_verified_draft_answer_the_guess_is_too_coarse_to_confirm_is_confirmed_by_the_guess_refined(
     real_scans, monkeypatch
 ):

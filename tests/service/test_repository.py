@@ -204,7 +204,7 @@ class Turned:
     def __init__(self, engine):
         self.engine, self.info = engine, engine.info
 
-    def run(self, source, target):
+    def run(self, source, target, beside=False):
         rotation, translation = self.engine.run(source, target)
         return rotation @ QUARTER_TURN, translation
 
@@ -319,7 +319,7 @@ class Overlapping:
     def __init__(self, info, running: dict, lock: threading.Lock):
         self.info, self.running, self.lock = info, running, lock
 
-    def run(self, source, target):
+    def run(self, source, target, beside=False):
         with self.lock:
             self.running["now"] += 1
             self.running["most"] = max(self.running["most"], self.running["now"])

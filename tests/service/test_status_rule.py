@@ -26,7 +26,7 @@ class FailingEngine:
         self.info = engine.info
         self.failing = False
 
-    def run(self, source, target):
+    def run(self, source, target, beside=False):
         if self.failing:
             raise RuntimeError("model session broke")
         return self.engine.run(source, target)
