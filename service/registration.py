@@ -674,17 +674,17 @@ async def _answer(
         asked = networks if auto else networks[:1]
         if auto and first.draft is not None:
             # A draft's answer stands only where feature matching, an independent method, agrees; the
-            # guess is needed on every path of `auto`, so it comes first, with the draft's first call
-            # (which needs only the prepared clouds) running beside it.
-            clouds = base.source_network, base.target_network
-            if first.draft.start_beside is not None:
-                first_call = await first.draft.start_beside(*clouds)
-            else:
-                first_call = asyncio.ensure_future(first.draft.predict(*clouds))
+            # guess is needed on every path of `auto`, so it comes first. A request alone in its worker
+            # (all `threads`) starts the draft's first call, which needs only the prepared clouds,
+            # beside it; among others, that call would wait its turn in the queue first.
+            first_call = None
+            if threads > 1 and first.draft.start_beside is not None:
+                first_call = await first.draft.start_beside(base.source_network, base.target_network)
             try:
                 features = await run_blocking(_feature_guess, base)
             except BaseException:
-                first_call.cancel()
+                if first_call is not None:
+                    first_call.cancel()
                 raise
             draft, paid, features_answer, unconfirmed = await _confirmed_draft(
                 base, features, first.draft, options, run_blocking, first_call
@@ -772,27 +772,27 @@ async def _confirmed_draft(
     draft: Network,
     options: RegistrationOptions,
     run_blocking: RunBlocking,
-    first_call: "asyncio.Future[Prediction]",
+    first_call: "asyncio.Future[Prediction] | None",
 ) -> tuple[RegistrationResult | None, list[dict[str, float]], RegistrationResult | None, list[RegistrationResult]]:
     """The draft's answer where feature matching confirms it, else None and the timings of the
     draft's answers set aside (paid for, but no candidate); the guess refined and checked when that
     was needed, and the draft's verified answers set aside: candidates of the rest of the pipeline,
     which judges them with its own (an answer the guess does not confirm may still be right).
 
-    The draft is asked for the source as it lies (`first_call`, already made) and, unless that answer
-    is verified, again for the source turned by the guess: the network knows turns of up to 45 deg, the guess any turn.
-    A verified answer is confirmed by the guess within AGREEMENT_DEG of it or, where the guess is
-    too coarse for that (a few degrees off on noisy clouds), by the guess refined and checked. An
-    answer from the guess lies near it by construction, so it stands only if the first answer,
-    refined, does not contradict it (as the model's answer would in the second opinion; one set aside
-    that fits loosely under CONTRADICTING_LOOSE_SHARE as well is not refined for that); where that
-    answer is verified too, the pair is ambiguous (a symmetric shape) and the better fitting of them
-    is the answer, not verified. A first answer that fails the check only on its constraint
-    (unpinned: it fits and has settled, but the clouds would let it slide) stands unverified where
-    the guess agrees with it in turn and translation, or refined is unpinned too and agrees with it:
-    answers near it would fail alike, and one far from it would contradict both methods. An answer
-    more than DRAFT_REACH_DEG from the guess is set aside unrefined: refinement would not bring the
-    two within AGREEMENT_DEG."""
+    The draft is asked for the source as it lies (`first_call`, where that call is under way
+    already) and, unless that answer is verified, again for the source turned by the guess: the
+    network knows turns of up to 45 deg, the guess any turn. A verified answer is confirmed by the
+    guess within AGREEMENT_DEG of it or, where the guess is too coarse for that (a few degrees off
+    on noisy clouds), by the guess refined and checked. An answer from the guess lies near it by
+    construction, so it stands only if the first answer, refined, does not contradict it (as the
+    model's answer would in the second opinion; one set aside that fits loosely under
+    CONTRADICTING_LOOSE_SHARE as well is not refined for that); where that answer is verified too,
+    the pair is ambiguous (a symmetric shape) and the better fitting of them is the answer, not
+    verified. A first answer that fails the check only on its constraint (unpinned: it fits and has
+    settled, but the clouds would let it slide) stands unverified where the guess agrees with it in
+    turn and translation, or refined is unpinned too and agrees with it: answers near it would fail
+    alike, and one far from it would contradict both methods. An answer more than DRAFT_REACH_DEG
+    from the guess is set aside unrefined: refinement would not bring the two within AGREEMENT_DEG."""
     paid: list[dict[str, float]] = []  # the timings of the draft's answers refined and checked
     unrefined: list[Prediction] = []  # the draft's answers set aside unrefined (too far from the guess)
     refined: list[RegistrationResult] = []  # the guess refined and checked, once needed

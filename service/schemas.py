@@ -256,7 +256,7 @@ class Timings(BaseModel):
     preprocess_ms: float = Field(description="Checks, duplicate removal, sampling and normalisation.")
     postprocess_ms: float = Field(description="Mapping back, refinement, the check and the global path's matching.")
     total_ms: float = Field(
-        description="The whole request. Under `auto` the draft's first call runs beside feature matching, "
+        description="The whole request. Under `auto` the draft's first call may run beside feature matching, "
         "so the parts may add up to more."
     )
     batch_size: int = Field(description="Pairs in the model call that served this one.")

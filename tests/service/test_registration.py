@@ -27,7 +27,14 @@ from model.geometry import (
     to_matrix,
 )
 from service.batcher import Prediction
-from service.registration import STARTS_POINTS, CloudSampler, Network, RegistrationFailed, register_clouds
+from service.registration import (
+    STARTS_POINTS,
+    CloudSampler,
+    Network,
+    RegistrationFailed,
+    RegistrationResult,
+    register_clouds,
+)
 from service.schemas import RefineOptions
 from service.validation import InvalidInput, as_points, as_rigid_transform
 
@@ -229,29 +236,39 @@ def test_where_the_draft_fails_a_verified_guess_spares_the_models(real_scans):
     assert rotation_angle_deg(result.rotation, TRUE_ROTATION) < 0.01
 
 
-def test_the_drafts_first_call_is_under_way_before_feature_matching_starts(real_scans):
-    """`auto` starts the draft's call for the source as it lies (start_beside: on fewer threads, returning
-    once a thread runs it) before feature matching, which runs beside it; the call is not made again."""
+def steps_of_auto(source: np.ndarray, target: np.ndarray, threads: int) -> tuple[list, RegistrationResult]:
+    """`auto` with a draft that can start a call beside feature matching: the steps run through
+    run_blocking, the calls started beside and the draft's other calls, in order."""
     events = []
-    source = real_scans["kitti_000008_fov"]
-    target = apply_transform(source, TRUE_ROTATION, TRUE_TRANSLATION)
-    options, settings, _ = pipeline_inputs(None, None, method="auto")
-    predict = recording([], "draft")
+    beside = recording([], "draft")
 
     async def start_beside(source_n, target_n):
         events.append("draft started beside")
-        return asyncio.ensure_future(predict(source_n, target_n))
+        return asyncio.ensure_future(beside(source_n, target_n))
 
     async def run_blocking(function, *args):
         events.append(function.__name__)
         return function(*args)
 
+    options, settings, _ = pipeline_inputs(None, None, method="auto")
     draft = Network("object", 384, recording(events, "draft"), "draft", start_beside=start_beside)
     networks = [Network("object", 768, recording(events, "model"), draft=draft)]
-    result = asyncio.run(register_clouds(source, target, options, settings, networks, run_blocking))
-    assert events[:3] == ["_prepare", "draft started beside", "_feature_guess"]
-    assert ("draft", 384) not in events  # the draft's answer as it lies came from that call
-    assert (result.stage, result.verified) == ("draft", True)
+    return events, asyncio.run(register_clouds(source, target, options, settings, networks, run_blocking, threads))
+
+
+def test_a_lone_requests_draft_call_is_under_way_before_feature_matching_starts(real_scans):
+    """`auto` alone in its worker (all its threads) starts the draft's call for the source as it lies
+    (start_beside: on fewer threads, returning once a thread runs it) before feature matching, which
+    runs beside it, and does not make that call again. Among other requests (one thread) the call
+    waits for feature matching, as it would wait its turn in the queue anyway."""
+    source = real_scans["kitti_000008_fov"]
+    target = apply_transform(source, TRUE_ROTATION, TRUE_TRANSLATION)
+    alone, result = steps_of_auto(source, target, threads=2)
+    assert alone[:3] == ["_prepare", "draft started beside", "_feature_guess"]
+    assert ("draft", 384) not in alone and (result.stage, result.verified) == ("draft", True)
+    among_others, result = steps_of_auto(source, target, threads=1)
+    assert among_others[:3] == ["_prepare", "_feature_guess", ("draft", 384)]
+    assert "draft started beside" not in among_others and (result.stage, result.verified) == ("draft", True)
 
 
 def test_a_verified_draft_answer_the_guess_is_too_coarse_to_confirm_is_confirmed_by_the_guess_refined(
