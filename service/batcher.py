@@ -309,7 +309,14 @@ class MicroBatcher:
                         )
                     )
 
-    def _call(self, loop, began: list[asyncio.Event], source, target, beside: bool) -> tuple[np.ndarray, np.ndarray]:
+    def _call(
+        self,
+        loop: asyncio.AbstractEventLoop,
+        began: list[asyncio.Event],
+        source: np.ndarray,
+        target: np.ndarray,
+        beside: bool,
+    ) -> tuple[np.ndarray, np.ndarray]:
         """The model call, on the executor's thread, which tells its callers first that it has taken
         the call up."""
         for event in began:

@@ -164,7 +164,7 @@ class Network:
     stage: Stage = "ifnet"  # "draft" for a model's draft network
     draft: "Network | None" = None  # asked before this one by `auto`, when this one is asked first
     # Starts a call that runs while the request does CPU work of its own (on fewer threads) and returns
-    # once it has begun, with the future of its answer (None: predict's call, as a task).
+    # once it has begun, with the future of its answer (None: the call waits for that work).
     start_beside: Callable[[np.ndarray, np.ndarray], Awaitable["asyncio.Future[Prediction]"]] | None = None
 
 
