@@ -274,10 +274,9 @@ class MicroBatcher:
             source = np.stack([pending.source for pending in items])
             target = np.stack([pending.target for pending in items])
             try:
-                beside = any(pending.beside for pending in items)
-                began = [pending.began for pending in items]
+                began = [pending.began for pending in items if pending.beside]  # no one waits on the others'
                 rotation, translation = await loop.run_in_executor(
-                    self._executor, self._call, loop, began, source, target, beside
+                    self._executor, self._call, loop, began, source, target, bool(began)
                 )
                 rotation, translation = np.asarray(rotation), np.asarray(translation)
                 if rotation.shape != (len(items), 3, 3) or translation.shape != (len(items), 3):
@@ -317,8 +316,8 @@ class MicroBatcher:
         target: np.ndarray,
         beside: bool,
     ) -> tuple[np.ndarray, np.ndarray]:
-        """The model call, on the executor's thread, which tells its callers first that it has taken
-        the call up."""
+        """The model call, on the executor's thread, which first tells the callers waiting to run
+        beside it (start_beside) that it has taken the call up."""
         for event in began:
             loop.call_soon_threadsafe(event.set)
         return self.engine.run(source, target, beside)
