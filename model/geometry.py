@@ -341,19 +341,22 @@ def subset(points: np.ndarray, count: int) -> np.ndarray:
 # ---------------------------------------------------------------- verification
 
 
-def point_spacing(points: np.ndarray, max_queries: int = 4096, seed: int = 0) -> float:
+def point_spacing(points: np.ndarray, max_queries: int = 4096, seed: int = 0, threads: int = 1) -> float:
     """Median distance from a point to its nearest other point: the cloud's sampling step.
 
     At most max_queries points (a seeded random subset) are queried against the whole cloud, so
     the cost stays bounded on large scans; exact duplicates are not counted as neighbours.
     """
+    import small_gicp  # its kd-tree: the same distances as scipy's, built and searched on `threads`
+
     if len(points) < 2:
         return 0.0
+    points = np.ascontiguousarray(points, dtype=np.float64)
     queries = points
     if len(points) > max_queries:
         queries = points[np.random.default_rng(seed).choice(len(points), size=max_queries, replace=False)]
-    distances, _ = cKDTree(points).query(queries, k=2)
-    nearest = distances[:, 1]
+    _, squared = small_gicp.KdTree(points, num_threads=threads).batch_knn_search(queries, 2, num_threads=threads)
+    nearest = np.sqrt(squared[:, 1])
     nearest = nearest[nearest > 0]  # duplicates say nothing about the spacing
     return float(np.median(nearest)) if len(nearest) else 0.0
 
@@ -502,7 +505,9 @@ class AlignmentClouds:
         self.source = np.ascontiguousarray(source, dtype=np.float64)
         self.target = np.ascontiguousarray(target, dtype=np.float64)
         self.threads = threads
-        self.spacing = max(point_spacing(self.source), point_spacing(self.target)) if spacing is None else spacing
+        if spacing is None:
+            spacing = max(point_spacing(cloud, threads=threads) for cloud in (self.source, self.target))
+        self.spacing = spacing
         self.target_tree = cKDTree(self.target)
         # small_gicp's clouds are centred: far from the origin (map coordinates) its turns, linearised
         # about the origin, lose precision and answers failed the check.

@@ -427,7 +427,8 @@ def _feature_guess(prepared: _Prepared) -> _FeatureGuess:
     spacing, spacings = check.spacing, FEATURE_VOXEL_SPACINGS
     if len(prepared.source) > len(check.source) or len(prepared.target) > len(check.target):  # thinned
         spacing = max(
-            point_spacing(subset(cloud, FEATURE_SPACING_POINTS)) for cloud in (prepared.source, prepared.target)
+            point_spacing(subset(cloud, FEATURE_SPACING_POINTS), threads=check.threads)
+            for cloud in (prepared.source, prepared.target)
         )
         spacings = THINNED_FEATURE_SPACINGS
     rotation, translation = feature_match(check.source, check.target, spacing, spacings)

@@ -2,6 +2,7 @@
 
 import numpy as np
 import pytest
+from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
 from model.geometry import (
@@ -55,6 +56,17 @@ def test_spacing_is_the_grid_step_and_ignores_duplicates():
     assert point_spacing(points) == pytest.approx(0.05)
     assert point_spacing(np.concatenate([points, points[:50]])) == pytest.approx(0.05)
     assert point_spacing(points, max_queries=100) == pytest.approx(0.05)
+
+
+def test_spacing_is_the_median_nearest_neighbour_distance_on_any_threads():
+    rng = np.random.default_rng(3)
+    points = blob(rng, 6000) * 10.0 + 1e3  # away from the origin, as map coordinates are
+    points = np.concatenate([points, points[:200]])  # duplicates are no neighbours
+    queries = points[np.random.default_rng(0).choice(len(points), size=4096, replace=False)]
+    nearest = cKDTree(points).query(queries, k=2)[0][:, 1]
+    expected = np.median(nearest[nearest > 0])
+    assert point_spacing(points) == pytest.approx(expected, rel=1e-12)
+    assert point_spacing(points, threads=2) == point_spacing(points)
 
 
 def test_score_uses_the_spacing_not_the_extent():
