@@ -7,10 +7,11 @@ behind a change to one of the pipeline's constants or settings, before and after
 
 A variant is NAME= (the code as it is) or NAME=TARGET=VALUE[;TARGET=VALUE...], where TARGET is a
 module's constant (`service.registration.SLIDE_GUESS_SHARE`) or `settings.FIELD`, and VALUE is
-JSON. Sets: ModelNet `split:noise[:so3][:count]` (25 pairs unless counted), `indoor`, `outdoor`
-(`:shared` for the paper's pairs), `truth` (the real pairs with ground truth), `scans` (the real
-scans of bench.compare). Every model of service/models/ and its draft answers in process, as the
-service's `auto` asks them, with `refine`; the variants take turns first from pair to pair. Per
+JSON. Sets as bench.harness.pair_set names them: ModelNet `split:noise[:so3][:count]` (25 pairs
+unless counted), `indoor`, `outdoor` (`:shared` for the paper's pairs), `truth` (the real pairs
+with ground truth), `scans` (views of real scans). Every model of service/models/ and its draft
+answers in process, as the service's `auto` asks them, with `refine`; the variants take turns
+first from pair to pair. Per
 set: right, verified and wrong-and-verified counts, median and total time, the median of the
 per-pair time ratios to the first variant, and every pair whose verdict, rightness or answer
 differs from the first variant's.
@@ -29,7 +30,6 @@ from pathlib import Path
 import numpy as np
 
 from bench import harness
-from bench.compare import DEFAULT_SCANS
 from model.artifacts import network_points
 from service.batcher import Prediction
 from service.engine import draft_file, model_files, open_session
@@ -99,19 +99,6 @@ def networks(settings: Settings) -> list[Network]:
     return found
 
 
-def pair_set(spec: str) -> list[harness.Pair]:
-    parts = spec.split(":")
-    if parts[0] in ("indoor", "outdoor"):
-        return harness.scene_pairs(parts[0], shared="shared" in parts)
-    if spec == "truth":
-        return harness.truth_pairs()
-    if spec == "scans":
-        return [harness.scan_pair(name) for name in DEFAULT_SCANS]
-    count = int(parts.pop()) if parts[-1].isdigit() else 25
-    split, noise, *rest = parts
-    return harness.modelnet_pairs(count, split, noise, so3=rest == ["so3"])
-
-
 async def _sync(function, *args, **kwargs):
     return function(*args, **kwargs)
 
@@ -143,7 +130,7 @@ def run(args: argparse.Namespace) -> dict:
     record = harness.run_header() | {"variants": args.variant, "sets": {}}
     first = variants[0][0]
     for spec in args.sets:
-        pairs = pair_set(spec)
+        pairs = harness.pair_set(spec)
         answer(pairs[0], [])  # sessions and caches warm before anything is timed
         rows = []
         for index, pair in enumerate(pairs):

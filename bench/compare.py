@@ -30,14 +30,6 @@ from bench import harness
 from model.geometry import AlignmentClouds
 from service.registration import refine_distances
 
-DEFAULT_SCANS = (
-    "real_scans/pcl_office1",
-    "real_scans/pcl_table_scene_mug",
-    "real_scans/sunrgbd_000017",
-    "real_scans/nuscenes_lidar_top",
-    "lidar_scans/semantickitti__semkitti-seq08__000750",
-    "indoor_scans/pcl__pcl-room__room_scan1",
-)
 DEFAULT_REQUESTS = ("service={}", 'service+refine={"refine": true}')
 PEERS = ("open3d", "kiss")
 
@@ -174,14 +166,11 @@ def run_set(methods: Methods, pairs: list[harness.Pair], rotation_start: int) ->
 def peers(args) -> int:
     sets: dict[str, list[harness.Pair]] = {}
     for spec in args.modelnet:
-        split, noise, *rest = spec.split(":")
-        sets[f"ModelNet {spec}"] = harness.modelnet_pairs(
-            args.modelnet_pairs, split, noise, so3=rest == ["so3"], seed=args.seed
-        )
+        sets[f"ModelNet {spec}"] = harness.pair_set(spec, args.modelnet_pairs, args.seed)
     for spec in args.scenes:
         domain, _, shared = spec.partition(":")
         label = f"{domain} scenes" + (", shared points" if shared else "")
-        sets[label] = harness.scene_pairs(domain, args.scene_pairs, seed=args.seed, shared=bool(shared))
+        sets[label] = harness.pair_set(spec, seed=args.seed, per_scan=args.scene_pairs)
     if args.scans:
         sets["real scans"] = [harness.scan_pair(spec, args.seed, max_angle_deg=args.scan_angle) for spec in args.scans]
     if args.truth_pairs:
@@ -228,13 +217,7 @@ def models(args) -> int:
     rotation error alone on each set (mean and median, degrees); with `--refine`, also after the
     service's coarse-to-fine GICP (mean, median, and the share of pairs right and verified)."""
     networks = [harness.Network(path, args.threads) for path in args.models]
-    sets = {}
-    for spec in args.sets:
-        if spec.split(":")[0] in ("indoor", "outdoor"):  # every held-out scan's pair, whatever --pairs says
-            sets[spec] = harness.scene_pairs(spec.split(":")[0], seed=args.seed, shared=spec.endswith(":shared"))
-        else:
-            split, noise = spec.split(":")
-            sets[spec] = harness.modelnet_pairs(args.pairs, split, noise, seed=args.seed)
+    sets = {spec: harness.pair_set(spec, args.pairs, args.seed) for spec in args.sets}
     ms = []
     errors = {spec: [[] for _ in networks] for spec in sets}
     refined = {spec: [[] for _ in networks] for spec in sets}
@@ -297,7 +280,9 @@ def main(argv: list[str] | None = None) -> int:
         "':shared': both clouds one sample of the scan, as the paper's own pairs",
     )
     p.add_argument("--scene-pairs", type=int, default=1, help="pairs per held-out scan")
-    p.add_argument("--scans", nargs="*", default=list(DEFAULT_SCANS), help="archive/name of scans in the shared data")
+    p.add_argument(
+        "--scans", nargs="*", default=list(harness.DEFAULT_SCANS), help="archive/name of scans in the shared data"
+    )
     p.add_argument("--scan-angle", type=float, default=30.0, help="largest rotation of a scan pair, degrees")
     p.add_argument("--truth-pairs", action=argparse.BooleanOptionalAction, default=True, help="the real indoor pairs")
     p.add_argument("--request", action="append", default=None, help="NAME=JSON options: one service row each")
@@ -317,7 +302,7 @@ def main(argv: list[str] | None = None) -> int:
         "--sets",
         nargs="+",
         default=["same:clean", "same:jitter"],
-        help="ModelNet split:noise sets, or a scene domain's held-out pairs (indoor, outdoor, indoor:shared, ...)",
+        help="set names as bench.harness.pair_set takes them (ModelNet split:noise[:so3], indoor, outdoor:shared, ...)",
     )
     m.add_argument("--refine", action="store_true", help="also the errors after the service's refinement")
     m.add_argument("--seed", type=int, default=0)

@@ -284,6 +284,34 @@ def truth_pairs() -> list[Pair]:
     return pairs
 
 
+# Real scans of the shared data whose two overlapping views (scan_pair) make the benchmarks' `scans` set.
+DEFAULT_SCANS = (
+    "real_scans/pcl_office1",
+    "real_scans/pcl_table_scene_mug",
+    "real_scans/sunrgbd_000017",
+    "real_scans/nuscenes_lidar_top",
+    "lidar_scans/semantickitti__semkitti-seq08__000750",
+    "indoor_scans/pcl__pcl-room__room_scan1",
+)
+
+
+def pair_set(spec: str, count: int = 25, seed: int = 0, per_scan: int = 1) -> list[Pair]:
+    """The pairs a set name stands for: ModelNet `split:noise[:so3][:count]` (`count` pairs unless the
+    name counts them), `indoor` or `outdoor` (`:shared` for the paper's pairs; `per_scan` pairs per
+    held-out scan), `truth` (the real pairs with ground truth), `scans` (DEFAULT_SCANS' views)."""
+    parts = spec.split(":")
+    if parts[0] in ("indoor", "outdoor"):
+        return scene_pairs(parts[0], per_scan, seed=seed, shared=parts[1:] == ["shared"])
+    if spec == "truth":
+        return truth_pairs()
+    if spec == "scans":
+        return [scan_pair(name, seed) for name in DEFAULT_SCANS]
+    if parts[-1].isdigit():
+        count = int(parts.pop())
+    split, noise, *rest = parts
+    return modelnet_pairs(count, split, noise, so3=rest == ["so3"], seed=seed)
+
+
 # ---------------------------------------------------------------- the classical peers
 
 

@@ -7,7 +7,7 @@ the classical peers on the same pairs.
 Per set: for each step and each network's calls, the pairs that ran it, its median per pair where it
 ran, its total and its share of `auto`'s total; the stages that gave the answers; `auto`'s median time
 per pair and, with --peers, the median per-pair ratio to Open3D FPFH + RANSAC + ICP and to
-KISS-Matcher + GICP, interleaved pair by pair. Sets as bench.ab's.
+KISS-Matcher + GICP, interleaved pair by pair. Sets as bench.harness.pair_set names them.
 """
 
 import argparse
@@ -74,7 +74,7 @@ def run(args: argparse.Namespace) -> dict:
 
     record = harness.run_header() | {"sets": {}}
     for spec in args.sets:
-        pairs = ab.pair_set(spec)
+        pairs = harness.pair_set(spec)
         for method in order:  # sessions, imports and caches warm before anything is timed
             timed(method, pairs[0], {})
         rows = []

@@ -57,3 +57,13 @@ def test_two_variants_meet_the_same_pairs(tmp_path):
     for numbers in summary.values():
         assert (numbers["right"], numbers["wrong_verified"]) == (2, 0) and numbers["total_ms"] > 0
     assert summary["now"]["ratio_to_first"] == 1.0
+
+
+def test_a_set_name_says_which_pairs_and_how_many():
+    if not (SHARED_DATA / "modelnet10_test.npz").is_file():
+        pytest.skip(f"ModelNet10 test shapes not found in {SHARED_DATA} (shared data is not checked out here)")
+    from bench import harness
+
+    counted, rotated = harness.pair_set("same:clean:3", count=7), harness.pair_set("unseen:jitter:so3", count=2)
+    assert len(counted) == 3 and all(pair.name.startswith("same-clean/") for pair in counted)
+    assert len(rotated) == 2 and all(pair.name.startswith("unseen-jitter-so3/") for pair in rotated)
