@@ -20,7 +20,6 @@ import numpy as np
 
 from service.validation import InvalidInput, as_points
 
-FORMATS = ("ply", "pcd", "npy")
 NPY_MAGIC = b"\x93NUMPY"
 ZIP_MAGIC = b"PK\x03\x04"
 MAX_HEADER_BYTES = 64 * 1024  # PLY and PCD headers; real ones are a few hundred bytes
