@@ -11,10 +11,9 @@ JSON. Sets as bench.harness.pair_set names them: ModelNet `split:noise[:so3][:co
 unless counted), `indoor`, `outdoor` (`:shared` for the paper's pairs), `truth` (the real pairs
 with ground truth), `scans` (views of real scans). Every model of service/models/ and its draft
 answers in process, as the service's `auto` asks them, with `refine`; the variants take turns
-first from pair to pair. Per
-set: right, verified and wrong-and-verified counts, median and total time, the median of the
-per-pair time ratios to the first variant, and every pair whose verdict, rightness or answer
-differs from the first variant's.
+first from pair to pair. Per set: right, verified and wrong-and-verified counts, median and total
+time, the median of the per-pair time ratios to the first variant, and every pair whose verdict,
+rightness or answer differs from the first variant's.
 """
 
 import argparse
