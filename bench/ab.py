@@ -7,13 +7,14 @@ behind a change to one of the pipeline's constants or settings, before and after
 
 A variant is NAME= (the code as it is) or NAME=TARGET=VALUE[;TARGET=VALUE...], where TARGET is a
 module's constant (`service.registration.SLIDE_GUESS_SHARE`) or `settings.FIELD`, and VALUE is
-JSON. Sets as bench.harness.pair_set names them: ModelNet `split:noise[:so3][:count]` (25 pairs
-unless counted), `indoor`, `outdoor` (`:shared` for the paper's pairs), `truth` (the real pairs
-with ground truth), `scans` (views of real scans). Every model of service/models/ and its draft
-answers in process, as the service's `auto` asks them, with `refine`; the variants take turns
-first from pair to pair. Per set: right, verified and wrong-and-verified counts, median and total
-time, the median of the per-pair time ratios to the first variant, and every pair whose verdict,
-rightness or answer differs from the first variant's.
+JSON; `settings.model_repository` runs the variant on another repository's models and drafts.
+Sets as bench.harness.pair_set names them: ModelNet `split:noise[:so3][:count]` (25 pairs unless
+counted), `indoor`, `outdoor` (`:shared` for the paper's pairs), `truth` (the real pairs with
+ground truth), `scans` (views of real scans). Every model of the repository and its draft answers
+in process, as the service's `auto` asks them, with `refine`; the variants take turns first from
+pair to pair. Per set: right, verified and wrong-and-verified counts, median and total time, the
+median of the per-pair time ratios to the first variant, and every pair whose verdict, rightness
+or answer differs from the first variant's.
 """
 
 import argparse
@@ -70,7 +71,7 @@ def patched(patches: list[tuple[str, object]], settings: Settings) -> Iterator[S
         undo.append((module, constant, getattr(module, constant)))
         setattr(module, constant, value)
     try:
-        yield settings.model_copy(update=fields)
+        yield Settings.model_validate(settings.model_dump() | fields)  # validated: a path field becomes a Path
     finally:
         for module, constant, value in reversed(undo):
             setattr(module, constant, value)
@@ -105,11 +106,15 @@ async def _sync(function, *args, **kwargs):
 def run(args: argparse.Namespace) -> dict:
     variants = [parse_variant(spec) for spec in args.variant]
     base = Settings()
-    nets = networks(base)
+    loaded: dict[tuple, list[Network]] = {}  # per model files: a variant may serve another repository
     options = RegistrationOptions(method="auto", refine=RefineOptions())
 
     def answer(pair: harness.Pair, patches: list) -> dict:
         with patched(patches, base) as settings:
+            files = tuple(model_files(settings))
+            if files not in loaded:
+                loaded[files] = networks(settings)
+            nets = loaded[files]
             started = time.perf_counter()
             result = asyncio.run(
                 register_clouds(pair.source, pair.target, options, settings, nets, _sync, base.threads)

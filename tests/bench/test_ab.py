@@ -33,6 +33,11 @@ def test_a_variant_holds_only_while_it_runs():
             pass
 
 
+def test_a_variant_may_serve_another_repository(tmp_path):
+    with ab.patched([("settings.model_repository", str(tmp_path))], Settings()) as settings:
+        assert settings.model_repository == tmp_path  # a Path, as the service's model files need
+
+
 def test_two_variants_meet_the_same_pairs(tmp_path):
     """On two clean ModelNet pairs (which `auto` gets right), each variant answers each pair, and the
     record says how they compare."""
