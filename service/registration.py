@@ -692,12 +692,13 @@ async def _answer(
             )
             if draft is not None and draft.verified and (options.init is not None or _turned(draft, base)):
                 # Asked from the user's guess or at feature matching's turn, either of which may be a
-                # symmetric shape's flipped pose: its half turns judge it. A user's guess may be any pose
-                # that passes the check, and where it matches little of the source (room for a turn about
-                # another axis to fit as well) the rotated starts judge it too (docs/verification-stress.md).
+                # symmetric shape's flipped pose: its half turns judge it. Either may be any pose that
+                # passes the check, and where it matches little of the source (room for a turn about
+                # another axis, not a principal one, to fit as well) the rotated starts judge it too
+                # (docs/verification-stress.md; docs/training/experiments/README.md, "8 EdgeConv neighbours").
                 found, cost = await run_blocking(_half_turns, base, draft, first.model, options)
                 costs = [cost]
-                if options.init is not None and draft.score.fitness < SLIDE_FITNESS:
+                if draft.score.fitness < SLIDE_FITNESS:
                     rivals, cost = await _judged_by_starts(base, first, [draft], options, run_blocking)
                     found, costs = found + rivals, costs + [cost]
                 return _given_and_charged([draft, *found], options.method, costs), features

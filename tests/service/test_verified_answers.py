@@ -303,8 +303,9 @@ def test_a_draft_answer_at_feature_matchings_turn_is_judged_by_its_half_turns(mo
     """A box with a block on one face, turned 150 deg, beyond the draft's reach. Feature matching
     lands on the box turned half a turn from the truth (the block aside, it fits), and so does the
     draft asked from there: verified and confirmed. Its half turns about the target's principal axes
-    find the truth, which fits better with tighter inliers: it is the answer, verified. The model is
-    never asked."""
+    find the truth, which fits better with tighter inliers: it is the answer, verified. Matching
+    under 0.85 of the source, the flipped answer is judged by the rotated starts too (the draft at
+    every start, stuck here). The model is never asked."""
     import asyncio
 
     from conftest import pipeline_inputs
@@ -324,7 +325,7 @@ def test_a_draft_answer_at_feature_matchings_turn_is_judged_by_its_half_turns(mo
     options, settings, _ = pipeline_inputs(None, None, method="auto", refine={})
     networks = [Network("object", 768, stuck, draft=Network("object", 384, stuck, "draft"))]
     answer = asyncio.run(registration.register_clouds(source, source @ truth.T, options, settings, networks))
-    assert asked == [384, 384]
+    assert asked == [384, 384] + [registration.STARTS_POINTS] * len(registration.STARTS)
     assert (answer.stage, answer.verified) == ("multistart", True), answer.reason
     assert rotation_angle_deg(answer.rotation, truth) < 0.01
 
