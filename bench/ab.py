@@ -131,10 +131,10 @@ def run(args: argparse.Namespace) -> dict:
             "rotation": np.asarray(result.rotation).tolist(),
         }
 
-    record = harness.run_header() | {"variants": args.variant, "sets": {}}
+    record = harness.run_header() | {"variants": args.variant, "seed": args.seed, "sets": {}}
     first = variants[0][0]
     for spec in args.sets:
-        pairs = harness.pair_set(spec)
+        pairs = harness.pair_set(spec, seed=args.seed)
         answer(pairs[0], [])  # sessions and caches warm before anything is timed
         rows = []
         for index, pair in enumerate(pairs):
@@ -184,6 +184,7 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument(
         "--variant", action="append", required=True, help="NAME= or NAME=TARGET=VALUE[;...]; the first is the base"
     )
+    p.add_argument("--seed", type=int, default=0, help="the sets' seed: other seeds give other pairs")
     p.add_argument("--out", type=Path, help="write the record (every pair's answers) here as JSON")
     args = p.parse_args(argv)
     if len(args.variant) < 2:

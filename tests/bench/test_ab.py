@@ -2,6 +2,7 @@
 
 import json
 
+import numpy as np
 import pytest
 from conftest import SHARED_DATA
 
@@ -72,3 +73,6 @@ def test_a_set_name_says_which_pairs_and_how_many():
     counted, rotated = harness.pair_set("same:clean:3", count=7), harness.pair_set("unseen:jitter:so3", count=2)
     assert len(counted) == 3 and all(pair.name.startswith("same-clean/") for pair in counted)
     assert len(rotated) == 2 and all(pair.name.startswith("unseen-jitter-so3/") for pair in rotated)
+    reseeded = harness.pair_set("unseen:jitter:so3", count=2, seed=1)  # the same shapes, other motions
+    assert [pair.name for pair in reseeded] == [pair.name for pair in rotated]
+    assert not any(np.allclose(a.rotation, b.rotation) for a, b in zip(reseeded, rotated, strict=True))
