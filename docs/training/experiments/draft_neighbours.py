@@ -16,8 +16,8 @@ import torch
 
 from export.onnx_export import DYNAMIC_AXES, RegistrationGraph, compare_with_torch, export_onnx, metadata_for
 from model.artifacts import DEFAULT_WEIGHTS, ort_session
-from model.checkpoint import file_sha256, read_weights
-from model.ifnet import IFNet, IFNetConfig
+from model.checkpoint import load_checkpoint
+from model.ifnet import IFNet
 from model.training.data import evaluation_pairs
 from service.engine import DRAFTS
 
@@ -30,16 +30,9 @@ def main() -> None:
     p.add_argument("--neighbours", type=int, required=True, help="EdgeConv neighbours of the object draft")
     p.add_argument("--out", type=Path, required=True, help="the repository folder to make")
     args = p.parse_args()
-    state = read_weights(DEFAULT_WEIGHTS, "weights file")
-    config = replace(
-        IFNetConfig.from_dict(state["config"]),
-        n_iters=1,
-        time_steps=1,
-        num_points=DRAFT_POINTS,
-        edgeconv_k=args.neighbours,
-    )
-    model = IFNet(config)
-    model.load_state_dict(state["model"])
+    shipped = load_checkpoint(DEFAULT_WEIGHTS, iterations=1, time_steps=1, num_points=DRAFT_POINTS)
+    model = IFNet(replace(shipped.model.config, edgeconv_k=args.neighbours))  # the neighbours are no weight
+    model.load_state_dict(shipped.model.state_dict())
     model.eval()
     (args.out / DRAFTS).mkdir(parents=True, exist_ok=True)
     for served in [*SERVED.glob("*.onnx"), *(SERVED / DRAFTS).glob("*.onnx")]:
@@ -51,7 +44,7 @@ def main() -> None:
     example = (torch.rand(1, DRAFT_POINTS, 3) - 0.5, torch.rand(1, DRAFT_POINTS, 3) - 0.5)
     with tempfile.TemporaryDirectory() as tmp:
         candidate = Path(tmp) / "draft.onnx"
-        metadata = metadata_for(model, state.get("preset", "fast"), file_sha256(DEFAULT_WEIGHTS))
+        metadata = metadata_for(model, shipped.preset, shipped.sha256)
         export_onnx(RegistrationGraph(model), candidate, example, ["source", "target"], ["rotation", "translation"],
                     DYNAMIC_AXES, metadata)  # fmt: skip
         report = compare_with_torch(ort_session(candidate), model, evaluation_pairs(8))
