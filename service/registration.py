@@ -86,6 +86,10 @@ THINNED_FEATURE_SPACINGS = 3.5
 # of one of them; the network's answers from the best few (by fitness) are refined and checked.
 STARTS = Rotation.create_group("O").as_matrix()
 STARTS_REFINED = 3
+# Judging, the best starts far from the answer are refined whatever their loose fit: where the network
+# misses from every start (a jittered shape of an unseen class), one 30-50 deg off the truth fits loosely
+# under the rivals' bar and refines into it.
+STARTS_JUDGING_ANYWAY = 1
 # Starts judging verified answers refine only rivals: starts further than RIVAL_REACH_DEG from each
 # (nearer ones settle on it) that fit at least RIVAL_LOOSE_SHARE as well as it at LOOSE_SPACINGS
 # point spacings, forgiving a coarse answer's few degrees (on real scans no start comes near).
@@ -470,7 +474,7 @@ def _finish_multistart(
     started = time.perf_counter()
     pairs = zip(STARTS, predictions, strict=True)
     coarse = [_user_transform(prepared, prediction, start) for start, prediction in pairs]
-    candidates = _rivals(prepared, coarse, options, settled)
+    candidates = _rivals(prepared, coarse, options, settled, STARTS_JUDGING_ANYWAY)
     cost = _model_timings(predictions) | {"postprocess_ms": (time.perf_counter() - started) * 1000.0}
     return [_result(prepared, candidate, "multistart", model, options, _FREE) for candidate in candidates], cost
 
@@ -480,15 +484,18 @@ def _rivals(
     coarse: list[tuple[np.ndarray, np.ndarray]],
     options: RegistrationOptions,
     settled: Sequence[RegistrationResult],
+    anyway: int = 0,
 ) -> list[_Candidate]:
     """The best few coarse answers by fitness, each refined and checked. With verified answers to
-    judge (`settled`), only their rivals: none, where no coarse answer fits loosely as well."""
+    judge (`settled`), only their rivals (none, where no coarse answer fits loosely as well) and the
+    best `anyway` of those far from them."""
     check, scored = prepared.check, prepared.scored
     ranked = [(check.fitness(scored, *pose, INLIER_SPACINGS), *pose) for pose in coarse]
+    ranked.sort(key=lambda entry: -entry[0])
     if settled:
         rival = _rival_test(prepared, settled)
-        ranked = [entry for entry in ranked if rival(*entry[1:])]
-    ranked.sort(key=lambda entry: -entry[0])
+        far = [entry for entry in ranked if _apart(entry[1], settled)]
+        ranked = far[:anyway] + [entry for entry in far[anyway:] if rival(*entry[1:])]
     refine_options = options.refine or RefineOptions()  # coarse answers: every candidate is refined
     best = ranked[:STARTS_REFINED]
     return [
@@ -510,10 +517,14 @@ def _rival_test(
     bar = share * max(loose(answer.rotation, answer.translation) for answer in settled)
 
     def rival(rotation: np.ndarray, translation: np.ndarray) -> bool:
-        far = min(rotation_angle_deg(rotation, answer.rotation) for answer in settled) > RIVAL_REACH_DEG
-        return bool(far and loose(rotation, translation) >= bar)
+        return _apart(rotation, settled) and loose(rotation, translation) >= bar
 
     return rival
+
+
+def _apart(rotation: np.ndarray, settled: Sequence[RegistrationResult]) -> bool:
+    """Further than RIVAL_REACH_DEG from each of the answers `settled`: refined, it would not settle on them."""
+    return bool(min(rotation_angle_deg(rotation, answer.rotation) for answer in settled) > RIVAL_REACH_DEG)
 
 
 def _half_turns(

@@ -774,3 +774,45 @@ def test_a_starts_answer_in_a_local_minimum_gives_way_to_the_better_pose_beside_
         assert error < 0.01 and answer.fitness > 0.99
     else:
         assert abs(error - 30.0) < 1.0 and answer.fitness < 0.95
+
+
+@pytest.mark.parametrize("anyway", [1, 0])
+def test_judging_the_best_start_is_refined_even_where_it_fits_loosely_under_the_bar(monkeypatch, anyway):
+    """The box with a block, its flipped pose verified (the block aside, it fits). The network missed
+    from every start but one, which lands 30 deg off the truth: loosely it fits under 0.8 as well
+    as the flipped pose, so it is no rival to refine; but as the best start it is refined anyway,
+    into the truth, which fits better with tighter inliers and is the answer, verified. Without that,
+    nothing judges the flipped pose and it stays the verified answer."""
+    from conftest import pipeline_inputs
+
+    from service import registration
+    from service.batcher import Prediction
+    from service.registration import LOOSE_SPACINGS, _checked, _given, _prepare, _result
+    from service.schemas import RefineOptions
+
+    monkeypatch.setattr(registration, "STARTS_JUDGING_ANYWAY", anyway)
+    source, truth, flipped = box_with_a_block()
+    options, settings, _ = pipeline_inputs(384, None, refine={}, method="global")
+    prepared = _prepare(source, source, 384, options, settings)
+    centre = source.mean(axis=0)
+
+    def about_centre(rotation: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        return rotation, centre - rotation @ centre
+
+    flip = truth.T @ flipped  # half a turn about the box's short axis
+    wrong = _result(prepared, _checked(prepared, *about_centre(flip), RefineOptions()), "draft", "object", options, {})
+    assert wrong.verified
+    near = euler_to_matrix([30.0, 0.0, 0.0])
+    bar = registration.RIVAL_LOOSE_SHARE * prepared.check.fitness(prepared.scored, *about_centre(flip), LOOSE_SPACINGS)
+    assert prepared.check.fitness(prepared.scored, *about_centre(near), LOOSE_SPACINGS) < bar
+    far_away = np.array([50.0, 0.0, 0.0])  # in the network's frame: matches nothing
+    predictions = [Prediction(near @ start.T, np.zeros(3)) for start in registration.STARTS[:1]]
+    predictions += [Prediction(start.T, far_away) for start in registration.STARTS[1:]]
+    found, _ = registration._finish_multistart(prepared, predictions, "object", options, [wrong])
+
+    answer = _given([wrong, *found], "global")
+    assert answer.verified, answer.reason
+    if anyway:
+        assert answer.stage == "multistart" and rotation_angle_deg(answer.rotation, np.eye(3)) < 0.01
+    else:
+        assert found == [] and answer is wrong
