@@ -86,16 +86,16 @@ THINNED_FEATURE_SPACINGS = 3.5
 # of one of them; the network's answers from the best few (by fitness) are refined and checked.
 STARTS = Rotation.create_group("O").as_matrix()
 STARTS_REFINED = 3
-# Judging, the best starts far from the answer are refined whatever their loose fit: where the network
-# misses from every start (a jittered shape of an unseen class), one 30-50 deg off the truth fits loosely
-# under the rivals' bar and refines into it.
-STARTS_JUDGING_ANYWAY = 1
-# Starts judging verified answers refine only rivals: starts further than RIVAL_REACH_DEG from each
+# Starts judging verified answers refine their rivals: starts further than RIVAL_REACH_DEG from each
 # (nearer ones settle on it) that fit at least RIVAL_LOOSE_SHARE as well as it at LOOSE_SPACINGS
-# point spacings, forgiving a coarse answer's few degrees (on real scans no start comes near).
+# point spacings, forgiving a coarse answer's few degrees (on real scans no start comes near); and
+# the best STARTS_JUDGING_ANYWAY of those far from them whatever their loose fit: where the network
+# misses from every start (a jittered shape of an unseen class), one 30-50 deg off the truth fits
+# loosely under that bar and refines into it.
 RIVAL_REACH_DEG = 15.0
 LOOSE_SPACINGS = 4.5
 RIVAL_LOOSE_SHARE = 0.8
+STARTS_JUDGING_ANYWAY = 1
 # The draft's first answer, set aside far from feature matching's guess, is refined to judge the answer
 # from the guess's turn only where it fits loosely at least this share as well: refined, those fitting
 # less never contradicted it, and refining them cost most on large scans (service/README.md).
