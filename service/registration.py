@@ -534,14 +534,9 @@ def _half_turns(
     loosely as well, refined and checked: the rivals of a flat or box-like shape's flipped pose,
     which feature matching and the network can both settle on. And what they cost."""
     started = time.perf_counter()
-    target = prepared.check.target
-    centre = target.mean(axis=0)
-    axes = principal_axes(target)
-    coarse = []
-    for axis in axes.T:
-        flip = 2.0 * np.outer(axis, axis) - np.eye(3)  # half a turn about `axis`
-        coarse.append((flip @ answer.rotation, flip @ (answer.translation - centre) + centre))
-    candidates = _rivals(prepared, coarse, options, [answer])
+    axes = principal_axes(prepared.check.target).T
+    flips = [2.0 * np.outer(axis, axis) - np.eye(3) for axis in axes]  # half a turn about each axis
+    candidates = _rivals(prepared, _turned_about_target(prepared, answer, flips), options, [answer])
     cost = {"postprocess_ms": (time.perf_counter() - started) * 1000.0} | _FREE_MODEL
     return [_result(prepared, candidate, "multistart", model, options, _FREE) for candidate in candidates], cost
 
@@ -553,17 +548,24 @@ def _polished(
     and checked: where the answer sits in a local minimum, a turn towards the truth settles there (a
     jittered chair verified 28 degrees off, whose truth fits better and tighter). And what they cost."""
     started = time.perf_counter()
-    target = prepared.check.target
-    centre = target.mean(axis=0)
+    axes = principal_axes(prepared.check.target).T
+    directions = np.array([sign * axis for axis in axes for sign in (1.0, -1.0)])  # either way about each
+    turns = Rotation.from_rotvec(np.radians(POLISH_DEG) * directions).as_matrix()
     refine_options = options.refine or RefineOptions()
-    candidates = []
-    for axis in principal_axes(target).T:
-        for sign in (1.0, -1.0):
-            turn = Rotation.from_rotvec(sign * np.radians(POLISH_DEG) * axis).as_matrix()
-            rotation, translation = turn @ answer.rotation, turn @ (answer.translation - centre) + centre
-            candidates.append(_checked(prepared, rotation, translation, refine_options, MIN_STARTS_FITNESS))
+    candidates = [
+        _checked(prepared, rotation, translation, refine_options, MIN_STARTS_FITNESS)
+        for rotation, translation in _turned_about_target(prepared, answer, turns)
+    ]
     cost = {"postprocess_ms": (time.perf_counter() - started) * 1000.0} | _FREE_MODEL
     return [_result(prepared, candidate, answer.stage, answer.model, options, _FREE) for candidate in candidates], cost
+
+
+def _turned_about_target(
+    prepared: _Prepared, answer: RegistrationResult, turns: Sequence[np.ndarray]
+) -> list[tuple[np.ndarray, np.ndarray]]:
+    """The answer (R, t) followed by each of `turns` about the centre of the target's points."""
+    centre = prepared.check.target.mean(axis=0)
+    return [(turn @ answer.rotation, turn @ (answer.translation - centre) + centre) for turn in turns]
 
 
 def _unless_slid(

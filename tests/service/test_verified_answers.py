@@ -740,9 +740,8 @@ def test_a_starts_answer_in_a_local_minimum_gives_way_to_the_better_pose_beside_
     """A pinwheel of 12 bars: turned by one bar (30 deg) it fits all but the marker, and refinement
     stays there; that pose passes the check. Feature matching finds nothing, and the one rotated start
     within the network's reach lands on that turn. Turned 20 deg back about the pinwheel's axis, it
-    refines into the truth,
-    which fits better with tighter inliers: the answer, verified. Without that look, the turned pose
-    would be the verified answer."""
+    refines into the truth, which fits better with tighter inliers: the answer, verified. Without
+    that look, the turned pose would be the verified answer."""
     import asyncio
 
     from conftest import kabsch, pipeline_inputs
