@@ -91,11 +91,13 @@ STARTS_REFINED = 3
 # point spacings, forgiving a coarse answer's few degrees (on real scans no start comes near); and
 # the best STARTS_JUDGING_ANYWAY of those far from them whatever their loose fit: where the network
 # misses from every start (a jittered shape of an unseen class), one 30-50 deg off the truth fits
-# loosely under that bar and refines into it.
+# loosely under that bar and refines into it; UNCORROBORATED_JUDGING_ANYWAY of them where feature
+# matching agrees with no verified answer (an unseen shape with outliers: the first may miss).
 RIVAL_REACH_DEG = 15.0
 LOOSE_SPACINGS = 4.5
 RIVAL_LOOSE_SHARE = 0.8
 STARTS_JUDGING_ANYWAY = 1
+UNCORROBORATED_JUDGING_ANYWAY = 3
 # The draft's first answer, set aside far from feature matching's guess, is refined to judge the answer
 # from the guess's turn only where it fits loosely at least this share as well: refined, those fitting
 # less never contradicted it, and refining them cost most on large scans (service/README.md).
@@ -467,6 +469,7 @@ def _finish_multistart(
     model: str,
     options: RegistrationOptions,
     settled: Sequence[RegistrationResult] = (),
+    anyway: int = 0,
 ) -> tuple[list[RegistrationResult], dict[str, float]]:
     """The network's answers from the rotated starts, the best few by fitness each refined and
     checked (every one of them can contradict another), and what they cost. With verified answers
@@ -474,7 +477,7 @@ def _finish_multistart(
     started = time.perf_counter()
     pairs = zip(STARTS, predictions, strict=True)
     coarse = [_user_transform(prepared, prediction, start) for start, prediction in pairs]
-    candidates = _rivals(prepared, coarse, options, settled, STARTS_JUDGING_ANYWAY)
+    candidates = _rivals(prepared, coarse, options, settled, anyway)
     cost = _model_timings(predictions) | {"postprocess_ms": (time.perf_counter() - started) * 1000.0}
     return [_result(prepared, candidate, "multistart", model, options, _FREE) for candidate in candidates], cost
 
@@ -736,7 +739,9 @@ async def _answer(
                 found, cost = await run_blocking(_half_turns, base, draft, first.model, options)
                 costs = [cost]
                 if draft.score.fitness < SLIDE_FITNESS:
-                    rivals, cost = await _judged_by_starts(base, first, [draft], options, run_blocking)
+                    rivals, cost = await _judged_by_starts(
+                        base, first, [draft], options, run_blocking, STARTS_JUDGING_ANYWAY
+                    )
                     found, costs = found + rivals, costs + [cost]
                 answers = [draft, *found]
                 await _polish(base, answers, costs, options, run_blocking)
@@ -773,7 +778,10 @@ async def _answer(
     if options.method != "ifnet":
         verified = [answer for answer in answers if answer.verified]
         if verified or not (auto and any(_settled_unpinned(answer) for answer in answers)):
-            found, cost = await _judged_by_starts(base, first, verified, options, run_blocking)
+            anyway = (
+                STARTS_JUDGING_ANYWAY if _corroborated(verified, features, answers) else UNCORROBORATED_JUDGING_ANYWAY
+            )
+            found, cost = await _judged_by_starts(base, first, verified, options, run_blocking, anyway)
             answers += _fitting_clearly_better(found, answers) if auto and not verified else found
             discarded.append(cost)
             await _polish(base, answers, discarded, options, run_blocking)
@@ -815,13 +823,14 @@ async def _judged_by_starts(
     verified: list[RegistrationResult],
     options: RegistrationOptions,
     run_blocking: RunBlocking,
+    anyway: int,
 ) -> tuple[list[RegistrationResult], dict[str, float]]:
     """The network's (its draft's, where it has one) answers from the rotated starts: candidates, or
     only the rivals of the `verified` answers they judge (_finish_multistart), and their cost."""
     starter = network.draft or network
     turned, target = await run_blocking(_starts, prepared)
     predictions = await asyncio.gather(*(starter.predict(cloud, target) for cloud in turned))
-    return await run_blocking(_finish_multistart, prepared, list(predictions), network.model, options, verified)
+    return await run_blocking(_finish_multistart, prepared, list(predictions), network.model, options, verified, anyway)
 
 
 async def _confirmed_draft(
@@ -980,6 +989,17 @@ def _charged(answer: RegistrationResult, others: list[dict[str, float]]) -> Regi
 def _confirms(guess: _FeatureGuess, answer: RegistrationResult) -> bool:
     """Feature matching's guess lies within AGREEMENT_DEG of the answer (the caller judges the answer)."""
     return rotation_angle_deg(answer.rotation, guess.rotation) <= AGREEMENT_DEG
+
+
+def _corroborated(verified: list[RegistrationResult], guess: _FeatureGuess, answers: list[RegistrationResult]) -> bool:
+    """Feature matching vouches for one of the `verified` answers: its guess lies within AGREEMENT_DEG of
+    it (_confirms), or its own answer among `answers`, refined and verified, does (or is that answer)."""
+    refined = [answer.rotation for answer in answers if answer.stage == "features" and answer.verified]
+    return any(
+        _confirms(guess, answer)
+        or any(rotation_angle_deg(answer.rotation, other) <= AGREEMENT_DEG for other in refined)
+        for answer in verified
+    )
 
 
 def _lands_on(prepared: _Prepared, guess: _FeatureGuess, answer: RegistrationResult, share: float) -> bool:

@@ -332,15 +332,20 @@ def test_auto_asks_the_draft_again_from_feature_matchings_guess_for_a_turn_beyon
     assert result.timings_ms["inference_ms"] == 2.0
 
 
-def test_the_rotated_starts_judge_a_verified_answer_refining_only_rivals_that_fit(real_scans, monkeypatch):
+@pytest.mark.parametrize("corroborated", [True, False])
+def test_the_rotated_starts_judge_a_verified_answer_refining_only_rivals_that_fit(
+    real_scans, monkeypatch, corroborated
+):
     """A verified model answer on a real scan: the 24 rotated starts judge it (asked of the model,
     which has no draft). Those within the network's reach land on the answer; the others, far from
     it, fit too poorly to be rivals: none is refined but the best of them (STARTS_JUDGING_ANYWAY),
-    and the answer stands."""
+    and the answer stands. Where feature matching's guess is far off (refined, it fails the check),
+    nothing corroborates the answer and the best UNCORROBORATED_JUDGING_ANYWAY are refined."""
     from service import registration
 
     truth = euler_to_matrix([20.0, 10.0, 5.0])  # within the network's reach
-    monkeypatch.setattr(registration, "feature_match", lambda *args: (truth, TRUE_TRANSLATION))
+    guess = truth if corroborated else euler_to_matrix([150.0, 0.0, 0.0])
+    monkeypatch.setattr(registration, "feature_match", lambda *args: (guess, TRUE_TRANSLATION))
     checked, check = [], registration._checked
     monkeypatch.setattr(registration, "_checked", lambda *args: checked.append(args[1]) or check(*args))
     turns = []
@@ -350,7 +355,9 @@ def test_the_rotated_starts_judge_a_verified_answer_refining_only_rivals_that_fi
     networks = [Network("object", 768, limited_reach(turns))]
     result = asyncio.run(register_clouds(source, target, options, settings, networks))
     assert (result.stage, result.verified) == ("ifnet", True) and len(turns) == 1 + 24
-    assert len(checked) == 1 + registration.STARTS_JUDGING_ANYWAY and result.timings_ms["inference_ms"] == 25.0
+    # Uncorroborated, the guess was refined and checked too.
+    judged = registration.STARTS_JUDGING_ANYWAY if corroborated else 1 + registration.UNCORROBORATED_JUDGING_ANYWAY
+    assert len(checked) == 1 + judged and result.timings_ms["inference_ms"] == 25.0
 
 
 def test_a_draft_answer_from_the_guess_does_not_stand_where_its_own_answer_contradicts_it(monkeypatch):

@@ -73,12 +73,16 @@ async def test_a_right_answer_is_verified(serve, shipped_model):
 
 async def test_clouds_in_map_coordinates_are_registered(serve, shipped_model):
     """The sample pair moved three million units out (as LiDAR scans in map coordinates are): feature
-    matching's voxel keys overflowed there and crashed the process, and refinement lost precision."""
+    matching's voxel keys overflowed there and crashed the process, and refinement lost precision
+    (the check failed it). Out there feature matching's guess, on a voxel grid placed otherwise, is
+    99 deg off and corroborates nothing, so the rotated starts judge the answer harder: a pose 7 deg
+    from it also passes the check (fitness 0.64 against 0.81), which may flag it as ambiguous."""
     source, target, truth = sample_pair(turned=False)
     offset = np.array([3e6, -2e6, 1e6])
     async with serve(Settings(model_path=shipped_model, warmup=False)) as (_, client):
         answer = await register(client, source + offset, target + offset, method="auto", refine=True)
-    assert answer["verified"] is True and rotation_error(answer, truth) < 0.5
+    assert rotation_error(answer, truth) < 0.5
+    assert answer["verified"] is True or answer["reason"].startswith("ambiguous"), answer["reason"]
     # Each source point lands where the true motion puts it (about the far origin, a tiny turn
     # error moves the translation a lot, but not the points).
     landed = apply_transform(source + offset, *from_matrix(np.asarray(answer["transform"])))
@@ -822,7 +826,7 @@ def test_a_starts_answer_in_a_local_minimum_gives_way_to_the_better_pose_beside_
 
 
 @pytest.mark.parametrize("anyway", [1, 0])
-def test_judging_the_best_start_is_refined_even_where_it_fits_loosely_under_the_bar(monkeypatch, anyway):
+def test_judging_the_best_start_is_refined_even_where_it_fits_loosely_under_the_bar(anyway):
     """The box with a block, its flipped pose verified (the block aside, it fits). The network missed
     from every start but one, which lands 30 deg off the truth: loosely it fits under 0.8 as well
     as the flipped pose, so it is no rival to refine; but as the best start it is refined anyway,
@@ -835,7 +839,6 @@ def test_judging_the_best_start_is_refined_even_where_it_fits_loosely_under_the_
     from service.registration import LOOSE_SPACINGS, _checked, _given, _prepare, _result
     from service.schemas import RefineOptions
 
-    monkeypatch.setattr(registration, "STARTS_JUDGING_ANYWAY", anyway)
     source, truth, flipped = box_with_a_block()
     options, settings, _ = pipeline_inputs(384, None, refine={}, method="global")
     prepared = _prepare(source, source, 384, options, settings)
@@ -853,7 +856,7 @@ def test_judging_the_best_start_is_refined_even_where_it_fits_loosely_under_the_
     far_away = np.array([50.0, 0.0, 0.0])  # in the network's frame: matches nothing
     predictions = [Prediction(near @ start.T, np.zeros(3)) for start in registration.STARTS[:1]]
     predictions += [Prediction(start.T, far_away) for start in registration.STARTS[1:]]
-    found, _ = registration._finish_multistart(prepared, predictions, "object", options, [wrong])
+    found, _ = registration._finish_multistart(prepared, predictions, "object", options, [wrong], anyway)
 
     answer = _given([wrong, *found], "global")
     assert answer.verified, answer.reason
