@@ -91,13 +91,14 @@ STARTS_REFINED = 3
 # point spacings, forgiving a coarse answer's few degrees (on real scans no start comes near); and
 # the best STARTS_JUDGING_ANYWAY of those far from them whatever their loose fit: where the network
 # misses from every start (a jittered shape of an unseen class), one 30-50 deg off the truth fits
-# loosely under that bar and refines into it; UNCORROBORATED_JUDGING_ANYWAY of them where feature
-# matching agrees with no verified answer (an unseen shape with outliers: the first may miss).
+# loosely under that bar and refines into it. Where feature matching vouches for no verified answer,
+# the best UNCORROBORATED_JUDGING_ANYWAY of them (past STARTS_REFINED): on an unseen shape with
+# outliers many poses pass the check, and the truth was the tenth best start.
 RIVAL_REACH_DEG = 15.0
 LOOSE_SPACINGS = 4.5
 RIVAL_LOOSE_SHARE = 0.8
 STARTS_JUDGING_ANYWAY = 1
-UNCORROBORATED_JUDGING_ANYWAY = 3
+UNCORROBORATED_JUDGING_ANYWAY = 10
 # The draft's first answer, set aside far from feature matching's guess, is refined to judge the answer
 # from the guess's turn only where it fits loosely at least this share as well: refined, those fitting
 # less never contradicted it, and refining them cost most on large scans (service/README.md).
@@ -489,9 +490,9 @@ def _rivals(
     settled: Sequence[RegistrationResult],
     anyway: int = 0,
 ) -> list[_Candidate]:
-    """The best few coarse answers by fitness, each refined and checked. With verified answers to
-    judge (`settled`), only their rivals (none, where no coarse answer fits loosely as well) and the
-    best `anyway` of those far from them."""
+    """The best few coarse answers by fitness (STARTS_REFINED, or `anyway` where more), each refined
+    and checked. With verified answers to judge (`settled`), only their rivals (none, where no coarse
+    answer fits loosely as well) and the best `anyway` of those far from them."""
     check, scored = prepared.check, prepared.scored
     ranked = [(check.fitness(scored, *pose, INLIER_SPACINGS), *pose) for pose in coarse]
     ranked.sort(key=lambda entry: -entry[0])
@@ -500,7 +501,7 @@ def _rivals(
         far = [entry for entry in ranked if _apart(entry[1], settled)]
         ranked = far[:anyway] + [entry for entry in far[anyway:] if rival(*entry[1:])]
     refine_options = options.refine or RefineOptions()  # coarse answers: every candidate is refined
-    best = ranked[:STARTS_REFINED]
+    best = ranked[: max(STARTS_REFINED, anyway)]
     return [
         _checked(prepared, rotation, translation, refine_options, MIN_STARTS_FITNESS)
         for _, rotation, translation in best

@@ -75,8 +75,8 @@ async def test_clouds_in_map_coordinates_are_registered(serve, shipped_model):
     """The sample pair moved three million units out (as LiDAR scans in map coordinates are): feature
     matching's voxel keys overflowed there and crashed the process, and refinement lost precision
     (the check failed it). Out there feature matching's guess, on a voxel grid placed otherwise, is
-    99 deg off and corroborates nothing, so the rotated starts judge the answer harder: a pose 7 deg
-    from it also passes the check (fitness 0.64 against 0.81), which may flag it as ambiguous."""
+    99 deg off and vouches for nothing, so the rotated starts judge the answer harder: poses 7 and
+    180 deg from it also pass the check, which may flag it as ambiguous."""
     source, target, truth = sample_pair(turned=False)
     offset = np.array([3e6, -2e6, 1e6])
     async with serve(Settings(model_path=shipped_model, warmup=False)) as (_, client):
