@@ -779,9 +779,7 @@ async def _answer(
     if options.method != "ifnet":
         verified = [answer for answer in answers if answer.verified]
         if verified or not (auto and any(_settled_unpinned(answer) for answer in answers)):
-            anyway = (
-                STARTS_JUDGING_ANYWAY if _corroborated(verified, features, answers) else UNCORROBORATED_JUDGING_ANYWAY
-            )
+            anyway = STARTS_JUDGING_ANYWAY if _corroborated(verified, features) else UNCORROBORATED_JUDGING_ANYWAY
             found, cost = await _judged_by_starts(base, first, verified, options, run_blocking, anyway)
             answers += _fitting_clearly_better(found, answers) if auto and not verified else found
             discarded.append(cost)
@@ -992,15 +990,10 @@ def _confirms(guess: _FeatureGuess, answer: RegistrationResult) -> bool:
     return rotation_angle_deg(answer.rotation, guess.rotation) <= AGREEMENT_DEG
 
 
-def _corroborated(verified: list[RegistrationResult], guess: _FeatureGuess, answers: list[RegistrationResult]) -> bool:
-    """Feature matching vouches for one of the `verified` answers: its guess lies within AGREEMENT_DEG of
-    it (_confirms), or its own answer among `answers`, refined and verified, does (or is that answer)."""
-    refined = [answer.rotation for answer in answers if answer.stage == "features" and answer.verified]
-    return any(
-        _confirms(guess, answer)
-        or any(rotation_angle_deg(answer.rotation, other) <= AGREEMENT_DEG for other in refined)
-        for answer in verified
-    )
+def _corroborated(verified: list[RegistrationResult], guess: _FeatureGuess) -> bool:
+    """Feature matching vouches for one of the `verified` answers (all of a request's): its guess lies
+    within AGREEMENT_DEG of it (_confirms), or it is feature matching's own answer, refined."""
+    return any(answer.stage == "features" or _confirms(guess, answer) for answer in verified)
 
 
 def _lands_on(prepared: _Prepared, guess: _FeatureGuess, answer: RegistrationResult, share: float) -> bool:
