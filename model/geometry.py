@@ -509,10 +509,14 @@ class AlignmentClouds:
             spacing = max(point_spacing(cloud, threads=threads) for cloud in (self.source, self.target))
         self.spacing = spacing
         self.target_tree = cKDTree(self.target)
-        # small_gicp's clouds are centred: far from the origin (map coordinates) its turns, linearised
-        # about the origin, lose precision and answers failed the check.
-        self.centre = self.target.min(axis=0) / 2 + self.target.max(axis=0) / 2
-        clouds = [small_gicp.PointCloud(points - self.centre) for points in (self.source, self.target)]
+        # small_gicp's clouds are each centred: it turns the source about its origin, and far from
+        # it (map coordinates, or a sensor's frame against a map's) the turns lose precision and
+        # answers failed the check.
+        self.centres = [points.min(axis=0) / 2 + points.max(axis=0) / 2 for points in (self.source, self.target)]
+        clouds = [
+            small_gicp.PointCloud(points - centre)
+            for points, centre in zip((self.source, self.target), self.centres, strict=True)
+        ]
         trees = [small_gicp.KdTree(cloud, num_threads=threads) for cloud in clouds]
         # The constraint's normals come from fewer neighbours than GICP's covariances: its calibration's.
         small_gicp.estimate_normals(clouds[1], trees[1], num_neighbors=SCORE_NORMAL_NEIGHBOURS, num_threads=threads)
@@ -611,7 +615,8 @@ class AlignmentClouds:
             max_distance = REFINE_SPACINGS * self.spacing
         clouds = self.gicp
         step = max_iterations if max_seconds is None else ITERATIONS_PER_CALL
-        transform = to_matrix(rotation, translation + rotation @ self.centre - self.centre)  # of the centred clouds
+        source_centre, target_centre = self.centres
+        transform = to_matrix(rotation, translation + rotation @ source_centre - target_centre)  # of the centred clouds
         steps = 0  # small_gicp numbers its steps from 0 and reports the last one's number
         started = time.perf_counter()
         while steps < max_iterations:
@@ -633,7 +638,7 @@ class AlignmentClouds:
                 break
         refined_rotation, refined_translation = from_matrix(transform)
         refined_rotation = nearest_rotation(refined_rotation)
-        return refined_rotation, refined_translation - refined_rotation @ self.centre + self.centre, steps - 1
+        return refined_rotation, refined_translation - refined_rotation @ source_centre + target_centre, steps - 1
 
 
 # ---------------------------------------------------------------- feature-based global registration
@@ -682,15 +687,28 @@ def feature_match(
     import kiss_matcher  # imported here so that the rest of this module needs only numpy/scipy
 
     scale = FEATURE_VOXEL / (spacings * spacing) if spacing > 0 else 1.0
-    # Clouds beyond the matcher's voxel keys (map coordinates) are both moved by one offset: out
+    reach = FEATURE_MAX_VOXELS * FEATURE_VOXEL / scale  # the farthest a point may lie from the origin
+
+    def beyond(cloud: np.ndarray, offset: np.ndarray) -> bool:
+        return bool(np.abs(cloud - offset).max() > reach)
+
+    # Clouds beyond the matcher's voxel keys (map coordinates) are moved by the target's centre: out
     # there it drops points and could crash the process. Only those: its answers change with the
-    # clouds' placement, and moving real scans lost some of them.
-    offset = np.zeros(3)
-    if max(np.abs(source).max(), np.abs(target).max()) * scale > FEATURE_MAX_VOXELS * FEATURE_VOXEL:
-        offset = target.mean(axis=0)
-    clouds = [np.ascontiguousarray((cloud - offset) * scale, np.float64) for cloud in (source, target)]
-    if not all(describable(cloud, FEATURE_VOXEL) for cloud in clouds):
-        return np.eye(3), np.zeros(3)
+    # clouds' placement, and moving real scans lost some of them. A source still out of reach (the
+    # clouds far apart, e.g. one in a sensor's frame, one in a map's) is moved by its own centre.
+    offsets = [np.zeros(3), np.zeros(3)]
+    if beyond(source, offsets[0]) or beyond(target, offsets[1]):
+        offsets = [target.mean(axis=0)] * 2
+        if beyond(source, offsets[0]):
+            offsets[0] = source.mean(axis=0)
+    clouds = []
+    for cloud, offset in zip((source, target), offsets, strict=True):
+        moved = cloud - offset
+        moved = moved[np.abs(moved).max(axis=1) <= reach]  # stray points no key reaches, if any
+        scaled = np.ascontiguousarray(moved * scale, np.float64)
+        if len(scaled) == 0 or not describable(scaled, FEATURE_VOXEL):
+            return np.eye(3), np.zeros(3)
+        clouds.append(scaled)
     matcher = kiss_matcher.KISSMatcher(kiss_matcher.KISSMatcherConfig(FEATURE_VOXEL))
     try:
         found = matcher.estimate(*clouds)
@@ -700,4 +718,5 @@ def feature_match(
     if not (np.isfinite(rotation).all() and np.isfinite(translation).all()):
         return np.eye(3), np.zeros(3)
     rotation = nearest_rotation(rotation)
-    return rotation, translation.reshape(3) / scale + offset - rotation @ offset
+    # target - offsets[1] ~ rotation @ (source - offsets[0]) + translation / scale
+    return rotation, translation.reshape(3) / scale + offsets[1] - rotation @ offsets[0]

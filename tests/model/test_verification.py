@@ -207,6 +207,19 @@ def test_refinement_and_the_check_work_as_well_far_from_the_origin():
     assert verify_alignment(source + offset, target + offset, far[0], far[1]).verified
 
 
+def test_refinement_and_the_check_work_as_well_on_clouds_far_apart():
+    """The target alone moved three million units out (a scan in a sensor's frame against one in a
+    map's): the turns of a source centred on the target's centre lost their precision there."""
+    source, target, rotation, translation = pair(jitter=0.005)
+    start = turned(rotation, translation, 3.0, apply_transform(source, rotation, translation).mean(axis=0))
+    offset = np.array([3e6, -2e6, 1e6])
+    near = refine(source, target, *start)
+    far = refine(source, target + offset, start[0], start[1] + offset)
+    assert rotation_angle_deg(far[0], near[0]) < 0.01 and rotation_angle_deg(far[0], rotation) < 0.5
+    assert np.abs(apply_transform(source, *far[:2]) - apply_transform(source, *near[:2]) - offset).max() < 1e-4
+    assert verify_alignment(source, target + offset, far[0], far[1]).verified
+
+
 def test_feature_matching_finds_any_rotation_at_any_scale():
     """KISS-Matcher refuses voxels below a few millimetres; the clouds are rescaled for it, so a
     small object in metres registers as well as a large one."""
@@ -239,6 +252,72 @@ def test_feature_matching_finds_the_motion_of_clouds_far_from_the_origin():
     found_rotation, found_translation = feature_match(source, target, point_spacing(source))
     assert rotation_angle_deg(found_rotation, rotation) < 2.0
     assert np.linalg.norm(apply_transform(source, found_rotation, found_translation) - target, axis=1).max() < 0.5
+
+
+def far_apart_pair() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A scan in a sensor's frame and the same scan, turned, in a map's, three million units out:
+    (source, target, rotation)."""
+    from model.geometry import euler_to_matrix
+
+    rng = np.random.default_rng(2)
+    rotation = euler_to_matrix([120.0, -35.0, 80.0])
+    source = rng.normal(size=(4000, 3)) * [3.0, 2.0, 1.0] + np.sin(rng.normal(size=(4000, 1)) * [1.0, 2.0, 3.0])
+    return source, source @ rotation.T + np.array([3e6, -2e6, 1e6]), rotation
+
+
+def test_feature_matching_finds_the_motion_of_clouds_far_apart_in_a_process_that_lives_on(tmp_path):
+    """Moved by the target's centre, such a source still lay three million units out, where the
+    matcher's keys overflow: it crashed the process (the service's worker, and the request with it)."""
+    pytest.importorskip("kiss_matcher")
+    import subprocess
+    import sys
+
+    source, target, rotation = far_apart_pair()
+    np.save(tmp_path / "source.npy", source)
+    np.save(tmp_path / "target.npy", target)
+    code = (
+        "import sys, numpy as np; from model.geometry import feature_match, point_spacing; "
+        "s, t = (np.load(f'{sys.argv[1]}/{name}.npy') for name in ('source', 'target')); "
+        "r, x = feature_match(s, t, point_spacing(s)); np.save(f'{sys.argv[1]}/found.npy', np.c_[r, x])"
+    )
+    done = subprocess.run([sys.executable, "-c", code, str(tmp_path)], capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0, done.stderr[-2000:]
+    found = np.load(tmp_path / "found.npy")
+    assert rotation_angle_deg(found[:, :3], rotation) < 2.0
+    assert np.linalg.norm(apply_transform(source, found[:, :3], found[:, 3]) - target, axis=1).max() < 0.5
+
+
+@pytest.mark.parametrize("case", ["far-apart", "a-stray-point", "near-the-origin"])
+def test_feature_matching_hands_the_matcher_only_points_its_keys_reach(case, monkeypatch):
+    """Every point the matcher gets lies within FEATURE_MAX_VOXELS voxels of the origin: clouds far
+    apart are moved by their own centres, and a stray point no placement brings within reach (a
+    thousand kilometres from a scan of a few metres) is left out; clouds within reach are not moved."""
+    kiss_matcher = pytest.importorskip("kiss_matcher")
+    from model.geometry import FEATURE_MAX_VOXELS, FEATURE_VOXEL, FEATURE_VOXEL_SPACINGS, feature_match, point_spacing
+
+    given = []
+
+    class Matcher:
+        def __init__(self, config):
+            pass
+
+        def estimate(self, source, target):
+            given.extend([source, target])
+            return type("Found", (), {"rotation": np.eye(3), "translation": np.zeros(3)})
+
+    monkeypatch.setattr(kiss_matcher, "KISSMatcher", Matcher)
+    source, target, _ = far_apart_pair()
+    if case == "a-stray-point":
+        target = np.concatenate([target - target.mean(axis=0), [[1e6, 0.0, 0.0]]])
+    if case == "near-the-origin":
+        target = target - target.mean(axis=0)
+    spacing = point_spacing(source)
+    feature_match(source, target, spacing)
+    scale = FEATURE_VOXEL / (FEATURE_VOXEL_SPACINGS * spacing)
+    assert max(np.abs(cloud).max() for cloud in given) <= FEATURE_MAX_VOXELS * FEATURE_VOXEL
+    assert [len(cloud) for cloud in given] == [len(source), len(target) - (case == "a-stray-point")]
+    if case == "near-the-origin":
+        assert np.allclose(given[0], source * scale) and np.allclose(given[1], target * scale)
 
 
 def near_duplicate_pairs(seed: int) -> np.ndarray:

@@ -89,6 +89,20 @@ async def test_clouds_in_map_coordinates_are_registered(serve, shipped_model):
     assert np.linalg.norm(landed - apply_transform(source, *from_matrix(truth)) - offset, axis=1).max() < 0.02
 
 
+async def test_a_scan_in_a_sensors_frame_registers_onto_one_in_a_maps(serve, shipped_model):
+    """The sample pair's target moved three million units out, its source left near the origin:
+    feature matching moved both by the target's centre, which left the source out of its keys'
+    reach, and the crash took the request with it (the connection closed without an answer)."""
+    source, target, truth = sample_pair(turned=False)
+    offset = np.array([3e6, -2e6, 1e6])
+    async with serve(Settings(model_path=shipped_model, warmup=False)) as (_, client):
+        answer = await register(client, source, target + offset, method="auto", refine=True)
+    assert rotation_error(answer, truth) < 0.5
+    assert answer["verified"] is True or answer["reason"].startswith("ambiguous"), answer["reason"]
+    landed = apply_transform(source, *from_matrix(np.asarray(answer["transform"])))
+    assert np.linalg.norm(landed - apply_transform(source, *from_matrix(truth)) - offset, axis=1).max() < 0.02
+
+
 @pytest.mark.slow
 async def test_auto_finds_a_large_rotation_the_network_alone_gets_wrong(serve, shipped_model):
     """The sample pair turned 150 deg: the rotated starts find it. The table fits a pose 18 deg off
