@@ -128,7 +128,16 @@ def check_cloud(points: np.ndarray, field: str, min_points: int, max_cloud_point
     if len(points) < min_points:
         raise InvalidInput(field, f"has {len(points)} points; at least {min_points} distinct points are needed")
     if (reason := degeneracy(points)) is not None:
-        problem = "all points are identical" if reason == "identical" else "all points lie on one line"
+        if reason == "collinear":
+            problem = "all points lie on one line (or a few lie so far from the rest that they look so: remove them)"
+        elif np.ptp(points, axis=0).max() > 0:  # distinct, but not at the precision of coordinates this large
+            largest = float(np.abs(points).max())
+            problem = (
+                f"all points coincide to within the rounding of coordinates up to {largest:.3g} "
+                "(shift it nearer the origin)"
+            )
+        else:
+            problem = "all points are identical"
         raise InvalidInput(field, f"is degenerate: {problem}, so no rigid transform can be determined")
     unique = remove_duplicates(points)
     if len(unique) < min_points:

@@ -695,6 +695,11 @@ def test_as_points_accepts_integers_and_arrays():
     [
         (np.ones((50, 3)), "all points are identical"),
         (np.outer(np.arange(50.0), [1.0, 2.0, 3.0]) + 7.0, "all points lie on one line"),
+        (
+            np.concatenate([cloud(49), [[1e9, 0.0, 0.0]]]),
+            r"or a few lie so far from the rest that they look so: remove them",
+        ),
+        (cloud(50) * 0.01 + 5e11, r"coincide to within the rounding of coordinates up to 5e\+11 \(shift it nearer"),
         (cloud(10), "has 10 points; at least 32"),
         (np.repeat(cloud(10), 5, axis=0), r"only 10 distinct points \(40 exact duplicates\)"),
         (cloud(600), "more than the limit of 500"),
