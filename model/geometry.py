@@ -495,9 +495,10 @@ class AlignmentClouds:
     spacing, scipy's kd-tree of the target (scores), and small_gicp's clouds with their normals and
     covariances and its kd-tree of the target (refinement; the target's normals also give scores
     their constraint). Never changed after construction (but for the source's centre and the
-    target's extent, computed once when first asked), so threads may share it; building it takes
-    about as long as a few GICP iterations. small_gicp runs on `threads` OpenMP threads (it holds the
-    interpreter lock while it runs, so more threads are the only way its work uses more than one CPU)."""
+    target's centre, axes and extent, computed once when first asked), so threads may share it;
+    building it takes about as long as a few GICP iterations. small_gicp runs on `threads` OpenMP
+    threads (it holds the interpreter lock while it runs, so more threads are the only way its work
+    uses more than one CPU)."""
 
     def __init__(self, source: np.ndarray, target: np.ndarray, spacing: float | None = None, threads: int = 1):
         import small_gicp  # imported here so that the rest of this module needs only numpy/scipy
@@ -555,6 +556,15 @@ class AlignmentClouds:
     @cached_property
     def source_centre(self) -> np.ndarray:
         return self.source.mean(axis=0)
+
+    @cached_property
+    def target_centre(self) -> np.ndarray:
+        return self.target.mean(axis=0)
+
+    @cached_property
+    def target_axes(self) -> np.ndarray:
+        """principal_axes of the target."""
+        return principal_axes(self.target)
 
     @cached_property
     def target_extent(self) -> float:

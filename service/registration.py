@@ -54,7 +54,6 @@ from model.geometry import (
     from_matrix,
     nearest_rotation,
     point_spacing,
-    principal_axes,
     resample_indices,
     rotation_angle_deg,
     slides,
@@ -538,7 +537,7 @@ def _half_turns(
     loosely as well, refined and checked: the rivals of a flat or box-like shape's flipped pose,
     which feature matching and the network can both settle on. And what they cost."""
     started = time.perf_counter()
-    axes = principal_axes(prepared.check.target).T
+    axes = prepared.check.target_axes.T
     flips = [2.0 * np.outer(axis, axis) - np.eye(3) for axis in axes]  # half a turn about each axis
     candidates = _rivals(prepared, _turned_about_target(prepared, answer, flips), options, [answer])
     cost = {"postprocess_ms": (time.perf_counter() - started) * 1000.0} | _FREE_MODEL
@@ -552,7 +551,7 @@ def _polished(
     and checked: where the answer sits in a local minimum, a turn towards the truth settles there (a
     jittered chair verified 28 degrees off, whose truth fits better and tighter). And what they cost."""
     started = time.perf_counter()
-    axes = principal_axes(prepared.check.target).T
+    axes = prepared.check.target_axes.T
     directions = np.array([sign * axis for axis in axes for sign in (1.0, -1.0)])  # either way about each
     turns = Rotation.from_rotvec(np.radians(POLISH_DEG) * directions).as_matrix()
     refine_options = options.refine or RefineOptions()
@@ -568,7 +567,7 @@ def _turned_about_target(
     prepared: _Prepared, answer: RegistrationResult, turns: Sequence[np.ndarray]
 ) -> list[tuple[np.ndarray, np.ndarray]]:
     """The answer (R, t) followed by each of `turns` about the centre of the target's points."""
-    centre = prepared.check.target.mean(axis=0)
+    centre = prepared.check.target_centre
     return [(turn @ answer.rotation, turn @ (answer.translation - centre) + centre) for turn in turns]
 
 
