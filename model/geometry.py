@@ -494,8 +494,8 @@ class AlignmentClouds:
     """One pair's clouds made ready once for every refinement and check of its answers: the point
     spacing, scipy's kd-tree of the target (scores), and small_gicp's clouds with their normals and
     covariances and its kd-tree of the target (refinement; the target's normals also give scores
-    their constraint). Never changed after construction (but for the source's centre and the
-    target's centre, axes and extent, computed once when first asked), so threads may share it;
+    their constraint). Never changed after construction (but for the source's centre and surface and
+    the target's centre, axes and extent, computed once when first asked), so threads may share it;
     building it takes about as long as a few GICP iterations. small_gicp runs on `threads` OpenMP
     threads (it holds the interpreter lock while it runs, so more threads are the only way its work
     uses more than one CPU)."""
@@ -580,9 +580,14 @@ class AlignmentClouds:
         """score's fitness over the source's surface points alone (those with another source point within
         ISOLATED_SPACINGS): the share of the source's surfaces that (R, t) lays on the target's. The
         fitness itself where no point has a neighbour."""
+        return self.fitness(self.source_surface, rotation, translation, INLIER_SPACINGS)
+
+    @cached_property
+    def source_surface(self) -> np.ndarray:
+        """The source's points with another within ISOLATED_SPACINGS, or all of them where none has."""
         nearest, _ = cKDTree(self.source).query(self.source, k=2, distance_upper_bound=ISOLATED_SPACINGS * self.spacing)
         surface = self.source[np.isfinite(nearest[:, 1])]
-        return self.fitness(surface if len(surface) else self.source, rotation, translation, INLIER_SPACINGS)
+        return surface if len(surface) else self.source
 
     def verify(self, rotation: np.ndarray, translation: np.ndarray, min_fitness: float = MIN_FITNESS) -> Verification:
         """Is (R, t) right? Scores it at the clouds' point spacing, refines it once to see whether it

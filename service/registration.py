@@ -584,7 +584,7 @@ def _unless_slid(
     started = time.perf_counter()
     check = prepared.check
     pinned = guess is not None and answer.stage != "features" and _lands_on(prepared, guess, answer, SLIDE_GUESS_SHARE)
-    if pinned or check.surface_fitness(answer.rotation, answer.translation) >= SLIDE_FITNESS:
+    if pinned or _matches_most(prepared, answer):
         answer.timings_ms["postprocess_ms"] += (time.perf_counter() - started) * 1000.0
         return answer
     small = AlignmentClouds(
@@ -622,6 +622,15 @@ def _unless_slid(
     away = float(np.linalg.norm(best.translation - answer.translation)) / check.target_extent
     reason = f"ambiguous: a pose {away:.0%} of the extent away also passes the check (a repeating scene?)"
     return dataclasses.replace(best, verified=False, reason=reason)
+
+
+def _matches_most(prepared: _Prepared, answer: RegistrationResult) -> bool:
+    """The answer matches at least SLIDE_FITNESS of the source, or of its surfaces (outliers lower the
+    fitness, not the overlap): little room is left for a pose beside it or turned from it to fit as well."""
+    fitness = answer.score.fitness
+    return (
+        fitness >= SLIDE_FITNESS or prepared.check.surface_fitness(answer.rotation, answer.translation) >= SLIDE_FITNESS
+    )
 
 
 _FREE_MODEL = {"queue_ms": 0.0, "inference_ms": 0.0, "batch_size": 0}
@@ -733,12 +742,15 @@ async def _answer(
             if draft is not None and draft.verified and (options.init is not None or _turned(draft, base)):
                 # Asked from the user's guess or at feature matching's turn, either of which may be a
                 # symmetric shape's flipped pose: its half turns judge it. Either may be any pose that
-                # passes the check, and where it matches little of the source (room for a turn about
-                # another axis, not a principal one, to fit as well) the rotated starts judge it too
-                # (docs/verification-stress.md; docs/training/experiments/README.md, "8 EdgeConv neighbours").
+                # passes the check, and where it matches little of the source and of its surfaces (room
+                # for a turn about another axis, not a principal one, to fit as well) the rotated starts
+                # judge it too (docs/verification-stress.md; docs/training/experiments/README.md,
+                # "8 EdgeConv neighbours").
                 found, cost = await run_blocking(_half_turns, base, draft, first.model, options)
-                costs = [cost]
-                if draft.score.fitness < SLIDE_FITNESS:
+                started = time.perf_counter()
+                most = await run_blocking(_matches_most, base, draft)
+                costs = [cost, _FREE_MODEL | {"postprocess_ms": (time.perf_counter() - started) * 1000.0}]
+                if not most:
                     rivals, cost = await _judged_by_starts(
                         base, first, [draft], options, run_blocking, STARTS_JUDGING_ANYWAY
                     )

@@ -674,6 +674,40 @@ def with_outliers(points: np.ndarray, share: float, rng: np.random.Generator) ->
     return np.concatenate([points, outliers])
 
 
+def test_outliers_alone_do_not_send_a_draft_answer_to_the_rotated_starts(monkeypatch):
+    """A pinwheel turned 150 deg, the request's `init` at the truth, a fifth more points as outliers
+    in the source: the draft's answer there is verified and matches less than SLIDE_FITNESS of the
+    source, but all of its surfaces, so the half turns judge it and the rotated starts do not."""
+    import asyncio
+
+    from conftest import pipeline_inputs
+
+    from model.geometry import to_matrix
+    from service import registration
+    from service.batcher import Prediction
+    from service.registration import Network
+
+    rng = np.random.default_rng(3)
+    shape = pinwheel(3, rng)
+    truth = euler_to_matrix([150.0, 20.0, -30.0])
+    source, target = with_outliers(shape, 0.2, rng), shape @ truth.T
+    monkeypatch.setattr(registration, "feature_match", lambda *args: (truth, np.zeros(3)))
+    calls = []
+
+    async def stays(source_n, target_n):
+        calls.append(len(source_n))
+        return Prediction(np.eye(3), np.zeros(3))
+
+    init = to_matrix(truth, np.zeros(3)).tolist()
+    options, settings, _ = pipeline_inputs(None, None, method="auto", refine={}, init=init)
+    networks = [Network("object", 768, stays, draft=Network("object", 384, stays, "draft"))]
+    answer = asyncio.run(registration.register_clouds(source, target, options, settings, networks))
+    assert (answer.stage, answer.verified) == ("draft", True), answer.reason
+    assert rotation_angle_deg(answer.rotation, truth) < 0.01
+    assert answer.fitness < registration.SLIDE_FITNESS
+    assert calls == [384]  # the draft once; no start asked
+
+
 @pytest.mark.parametrize("overlap", ["whole", "half"])
 def test_outliers_alone_do_not_send_a_right_answer_to_the_slide_check(monkeypatch, overlap):
     """Outliers in the source lower the right answer's fitness below SLIDE_FITNESS, not the share of
