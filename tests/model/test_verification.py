@@ -254,6 +254,29 @@ def test_feature_matching_finds_the_motion_of_clouds_far_from_the_origin():
     assert np.linalg.norm(apply_transform(source, found_rotation, found_translation) - target, axis=1).max() < 0.5
 
 
+def feature_match_in_a_process(
+    folder, source: np.ndarray, target: np.ndarray, spacing: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """feature_match's (R, t) computed in a process of its own, which must live on: a crash in
+    KISS-Matcher kills its process (a segfault), which here fails the test instead of the test run."""
+    import subprocess
+    import sys
+
+    np.save(folder / "source.npy", source)
+    np.save(folder / "target.npy", target)
+    code = (
+        "import sys, numpy as np; from model.geometry import feature_match; "
+        "s, t = (np.load(f'{sys.argv[1]}/{name}.npy') for name in ('source', 'target')); "
+        "r, x = feature_match(s, t, float(sys.argv[2])); np.save(f'{sys.argv[1]}/found.npy', np.c_[r, x])"
+    )
+    done = subprocess.run(
+        [sys.executable, "-c", code, str(folder), repr(spacing)], capture_output=True, text=True, timeout=120
+    )
+    assert done.returncode == 0, done.stderr[-2000:]
+    found = np.load(folder / "found.npy")
+    return found[:, :3], found[:, 3]
+
+
 def far_apart_pair() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """A scan in a sensor's frame and the same scan, turned, in a map's, three million units out:
     (source, target, rotation)."""
@@ -269,22 +292,12 @@ def test_feature_matching_finds_the_motion_of_clouds_far_apart_in_a_process_that
     """Moved by the target's centre, such a source still lay three million units out, where the
     matcher's keys overflow: it crashed the process (the service's worker, and the request with it)."""
     pytest.importorskip("kiss_matcher")
-    import subprocess
-    import sys
+    from model.geometry import point_spacing
 
     source, target, rotation = far_apart_pair()
-    np.save(tmp_path / "source.npy", source)
-    np.save(tmp_path / "target.npy", target)
-    code = (
-        "import sys, numpy as np; from model.geometry import feature_match, point_spacing; "
-        "s, t = (np.load(f'{sys.argv[1]}/{name}.npy') for name in ('source', 'target')); "
-        "r, x = feature_match(s, t, point_spacing(s)); np.save(f'{sys.argv[1]}/found.npy', np.c_[r, x])"
-    )
-    done = subprocess.run([sys.executable, "-c", code, str(tmp_path)], capture_output=True, text=True, timeout=120)
-    assert done.returncode == 0, done.stderr[-2000:]
-    found = np.load(tmp_path / "found.npy")
-    assert rotation_angle_deg(found[:, :3], rotation) < 2.0
-    assert np.linalg.norm(apply_transform(source, found[:, :3], found[:, 3]) - target, axis=1).max() < 0.5
+    found_rotation, found_translation = feature_match_in_a_process(tmp_path, source, target, point_spacing(source))
+    assert rotation_angle_deg(found_rotation, rotation) < 2.0
+    assert np.linalg.norm(apply_transform(source, found_rotation, found_translation) - target, axis=1).max() < 0.5
 
 
 @pytest.mark.parametrize("case", ["far-apart", "a-stray-point", "near-the-origin"])
@@ -332,8 +345,6 @@ def test_feature_matching_passes_over_clouds_it_cannot_describe_instead_of_crash
     """KISS-Matcher segfaults (it killed the service's worker) on clouds whose voxels have no
     neighbours: feature matching then finds nothing, in a process that lives on."""
     pytest.importorskip("kiss_matcher")
-    import subprocess
-    import sys
 
     from model.geometry import FEATURE_VOXEL, FEATURE_VOXEL_SPACINGS, describable, point_spacing
 
@@ -343,17 +354,8 @@ def test_feature_matching_passes_over_clouds_it_cannot_describe_instead_of_crash
     assert not describable(source * scale, FEATURE_VOXEL)
     blob = np.random.default_rng(2).normal(size=(800, 3)) * [3.0, 2.0, 1.0]
     assert describable(blob * FEATURE_VOXEL / (FEATURE_VOXEL_SPACINGS * point_spacing(blob)), FEATURE_VOXEL)
-    np.save(tmp_path / "source.npy", source)
-    np.save(tmp_path / "target.npy", target)
-    code = (
-        "import sys, numpy as np; from model.geometry import feature_match, point_spacing; "
-        "s, t = (np.load(f'{sys.argv[1]}/{name}.npy') for name in ('source', 'target')); "
-        "r, x = feature_match(s, t, max(point_spacing(s), point_spacing(t))); "
-        "print(np.allclose(r, np.eye(3)) and np.allclose(x, 0.0))"
-    )
-    done = subprocess.run([sys.executable, "-c", code, str(tmp_path)], capture_output=True, text=True, timeout=120)
-    assert done.returncode == 0, done.stderr[-2000:]
-    assert done.stdout.strip() == "True"
+    found_rotation, found_translation = feature_match_in_a_process(tmp_path, source, target, spacing)
+    assert np.allclose(found_rotation, np.eye(3)) and np.allclose(found_translation, 0.0)
 
 
 @pytest.mark.parametrize("far", [0.0, 1e7], ids=["one-key-per-voxel", "too-wide-for-one-key"])
