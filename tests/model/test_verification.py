@@ -220,15 +220,24 @@ def test_refinement_and_the_check_work_as_well_on_clouds_far_apart():
     assert verify_alignment(source, target + offset, far[0], far[1]).verified
 
 
+def feature_shape() -> tuple[np.ndarray, np.ndarray]:
+    """A lumpy ellipsoid of 4,000 points a few units across, with features to match, and a turn far
+    beyond the network's reach: (points, rotation)."""
+    from model.geometry import euler_to_matrix
+
+    rng = np.random.default_rng(2)
+    points = rng.normal(size=(4000, 3)) * [3.0, 2.0, 1.0] + np.sin(rng.normal(size=(4000, 1)) * [1.0, 2.0, 3.0])
+    return points, euler_to_matrix([120.0, -35.0, 80.0])
+
+
 def test_feature_matching_finds_any_rotation_at_any_scale():
     """KISS-Matcher refuses voxels below a few millimetres; the clouds are rescaled for it, so a
     small object in metres registers as well as a large one."""
     pytest.importorskip("kiss_matcher")
-    from model.geometry import euler_to_matrix, feature_match, point_spacing, rotation_angle_deg
+    from model.geometry import feature_match, point_spacing, rotation_angle_deg
 
-    rng = np.random.default_rng(2)
-    rotation, translation = euler_to_matrix([120.0, -35.0, 80.0]), np.array([0.3, -0.1, 0.2])
-    blob = rng.normal(size=(4000, 3)) * [3.0, 2.0, 1.0] + np.sin(rng.normal(size=(4000, 1)) * [1.0, 2.0, 3.0])
+    blob, rotation = feature_shape()
+    translation = np.array([0.3, -0.1, 0.2])
     for size in (1.0, 0.005):  # a metre-sized shape, and one of a few millimetres
         source = blob * size
         target = source @ rotation.T + translation * size
@@ -241,11 +250,10 @@ def test_feature_matching_finds_the_motion_of_clouds_far_from_the_origin():
     """Clouds in map coordinates (here a million units out, a few units across) are centred for the
     matcher, whose voxel keys overflow that far out (it warned, answered wrong, and could crash)."""
     pytest.importorskip("kiss_matcher")
-    from model.geometry import euler_to_matrix, feature_match, point_spacing, rotation_angle_deg
+    from model.geometry import feature_match, point_spacing, rotation_angle_deg
 
-    rng = np.random.default_rng(2)
-    rotation, offset = euler_to_matrix([120.0, -35.0, 80.0]), np.array([3e6, -2e6, 1e6])
-    blob = rng.normal(size=(4000, 3)) * [3.0, 2.0, 1.0] + np.sin(rng.normal(size=(4000, 1)) * [1.0, 2.0, 3.0])
+    blob, rotation = feature_shape()
+    offset = np.array([3e6, -2e6, 1e6])
     source = blob + offset
     translation = offset - rotation @ offset + np.array([0.3, -0.1, 0.2])  # turned about the offset, and moved
     target = source @ rotation.T + translation
@@ -280,11 +288,7 @@ def feature_match_in_a_process(
 def far_apart_pair() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """A scan in a sensor's frame and the same scan, turned, in a map's, three million units out:
     (source, target, rotation)."""
-    from model.geometry import euler_to_matrix
-
-    rng = np.random.default_rng(2)
-    rotation = euler_to_matrix([120.0, -35.0, 80.0])
-    source = rng.normal(size=(4000, 3)) * [3.0, 2.0, 1.0] + np.sin(rng.normal(size=(4000, 1)) * [1.0, 2.0, 3.0])
+    source, rotation = feature_shape()
     return source, source @ rotation.T + np.array([3e6, -2e6, 1e6]), rotation
 
 
