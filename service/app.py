@@ -49,9 +49,16 @@ and `/v2/...` speaks the Open Inference Protocol.
 
 
 async def _become_ready(state: ServiceState) -> None:
-    """Warm each model up at every batch size, one after another (their calls would contend for the
-    CPUs), then start serving the queues and report ready."""
+    """Start feature matching's child process, warm each model up at every batch size, one after
+    another (their calls would contend for the CPUs), then start serving the queues and report ready."""
     batchers = [batcher for model in state.models.values() for batcher in model.batchers]
+    if state.settings.warmup and state.feature_match is not None:
+        try:
+            await asyncio.to_thread(state.feature_match.start)
+        except Exception as error:
+            state.warmup_error = f"feature matching's process failed to start: {error}"
+            logger.exception("feature matching's process failed to start; the service stays not ready")
+            return
     for batcher in batchers:
         try:
             if state.settings.warmup:
@@ -87,6 +94,8 @@ def _lifespan(engines: list[Engine] | None):
             await asyncio.wait({becoming_ready})
             batchers = [batcher for model in state.models.values() for batcher in model.batchers]
             await asyncio.gather(*(batcher.close(settings.shutdown_timeout_s) for batcher in batchers))
+            if state.feature_match is not None:
+                state.feature_match.close()
             logger.info("batchers drained; shutting down")
             state.metrics.worker_stopped()
 

@@ -87,6 +87,13 @@ class Metrics:
             ["model", "stage", "verified"],
             registry=self.registry,
         )
+        self.feature_matching_failures = Counter(
+            "ifnet_feature_matching_failures",
+            "Feature matching's child process crashed or gave no answer in time (crash, timeout); the pairs in it "
+            "were answered without its guess.",
+            ["reason"],
+            registry=self.registry,
+        )
         self.ready = Gauge(
             "ifnet_ready",
             "1 once every model is loaded and warmed up (in every worker).",

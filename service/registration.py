@@ -61,6 +61,7 @@ from model.geometry import (
     to_matrix,
 )
 from service.batcher import Prediction, RequestTimeoutError
+from service.features import FeatureMatch
 from service.schemas import RefineOptions, RegistrationOptions, Sampling
 from service.settings import Settings
 from service.state import ServiceState
@@ -430,8 +431,9 @@ class _FeatureGuess:
     seconds: float
 
 
-def _feature_guess(prepared: _Prepared) -> _FeatureGuess:
-    """Feature matching (KISS-Matcher), whatever the rotation: a coarse answer."""
+def _feature_guess(prepared: _Prepared, match: FeatureMatch | None = None) -> _FeatureGuess:
+    """Feature matching (KISS-Matcher, or `match` with feature_match's signature), whatever the
+    rotation: a coarse answer."""
     started = time.perf_counter()
     check = prepared.check
     spacing, spacings = check.spacing, FEATURE_VOXEL_SPACINGS
@@ -441,7 +443,7 @@ def _feature_guess(prepared: _Prepared) -> _FeatureGuess:
             for cloud in (prepared.source, prepared.target)
         )
         spacings = THINNED_FEATURE_SPACINGS
-    rotation, translation = feature_match(check.source, check.target, spacing, spacings)
+    rotation, translation = (match or feature_match)(check.source, check.target, spacing, spacings)
     return _FeatureGuess(rotation, translation, time.perf_counter() - started)
 
 
@@ -658,6 +660,7 @@ async def register_clouds(
     networks: Sequence[Network],
     run_blocking: RunBlocking = asyncio.to_thread,
     threads: int = 1,
+    match: FeatureMatch | None = None,
 ) -> RegistrationResult:
     """Register `source` onto `target` (both N x 3 in user units, already through `as_points`).
 
@@ -668,13 +671,14 @@ async def register_clouds(
     passes the check, or fails it only on its constraint matching most of the source (UNPINNED_FITNESS),
     and, when none does, the global search (`auto`). The CPU-heavy steps run
     through `run_blocking` (a worker thread by default) so that the event loop keeps serving;
-    refinement and the check run on `threads`. Raises InvalidInput for
+    refinement and the check run on `threads`; feature matching runs `match` (in the service, in a
+    child process: service.features), else feature_match in process. Raises InvalidInput for
     clouds that cannot be registered.
     """
     first = networks[0]
     count = (first.draft or first).network_points if options.method == "auto" else first.network_points
     base = await run_blocking(_prepare, source, target, count, options, settings, threads)
-    answer, guess = await _answer(source, target, base, options, settings, networks, run_blocking, threads)
+    answer, guess = await _answer(source, target, base, options, settings, networks, run_blocking, threads, match)
     return await run_blocking(_unless_slid, base, answer, options, guess)
 
 
@@ -700,6 +704,7 @@ async def _answer(
     networks: Sequence[Network],
     run_blocking: RunBlocking,
     threads: int,
+    match: FeatureMatch | None,
 ) -> tuple[RegistrationResult, _FeatureGuess | None]:
     """register_clouds' answer before its slide check, from the pair made ready (`base`) for the
     first network asked, and feature matching's guess where it was made."""
@@ -731,7 +736,7 @@ async def _answer(
             if threads > 1 and first.draft.start_beside is not None:
                 first_call = await first.draft.start_beside(base.source_network, base.target_network)
             try:
-                features = await run_blocking(_feature_guess, base)
+                features = await run_blocking(_feature_guess, base, match)
             except BaseException:
                 if first_call is not None:
                     first_call.cancel()
@@ -774,7 +779,7 @@ async def _answer(
         if options.method == "ifnet" and not answers[0].verified:
             return answers[0], features
     # Feature matching: the global path's cheapest stage, and a second opinion on a verified answer.
-    features = features or await run_blocking(_feature_guess, base)
+    features = features or await run_blocking(_feature_guess, base, match)
     settled = [answer for answer in answers if answer.verified]
     if features_answer is not None:  # refined and checked already, for the draft
         answers.append(features_answer)
@@ -1095,7 +1100,9 @@ async def register_pairs(
 
     async def one(index: int, source: np.ndarray, target: np.ndarray) -> RegistrationResult:
         try:
-            result = await register_clouds(source, target, options, settings, networks, threads=threads)
+            result = await register_clouds(
+                source, target, options, settings, networks, threads=threads, match=service.feature_match
+            )
         except InvalidInput as error:
             if len(pairs) == 1:
                 raise

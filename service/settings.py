@@ -94,6 +94,12 @@ class Settings(BaseSettings):
         description="The registration method of requests that do not name one: `ifnet` bounds every request to one "
         "model call, `auto` adds the global search where the network's answer fails its check.",
     )
+    isolate_feature_matching: bool = Field(
+        True,
+        description="Run feature matching (KISS-Matcher, native code) in a child process of each worker: a crash "
+        "there costs the pairs in it their feature guess (they are answered without it), not the worker and every "
+        "request in flight on it, and the worker serves on while it runs.",
+    )
     warmup: bool = Field(True, description="Run each model once per batch size before reporting ready.")
     shutdown_timeout_s: float = Field(30.0, gt=0.0, description="Grace period for in-flight requests on SIGTERM.")
     log_level: Literal["critical", "error", "warning", "info", "debug"] = "info"

@@ -7,6 +7,7 @@ from dataclasses import dataclass
 
 from service.batcher import MicroBatcher
 from service.engine import Engine, ModelInfo, RunningCalls
+from service.features import IsolatedFeatureMatch
 from service.metrics import LatencyWindow, Metrics
 from service.schemas import DraftDescription, ModelDescription
 from service.settings import Settings
@@ -57,6 +58,10 @@ class ServiceState:
         self.accepting = True  # False once shutdown has begun
         self.running = RunningCalls()  # the engines' own, once they are served
         self.large_json_parse = asyncio.Lock()  # see uploads.parse_json
+        self.feature_match: IsolatedFeatureMatch | None = None  # None: feature matching in the worker itself
+        if settings.isolate_feature_matching:
+            failures = self.metrics.feature_matching_failures
+            self.feature_match = IsolatedFeatureMatch(on_failure=lambda reason: failures.labels(reason).inc())
 
     @property
     def in_flight(self) -> int:

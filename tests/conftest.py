@@ -25,8 +25,12 @@ TINY_MODEL_POINTS = 64
 def pytest_configure(config):
     """The service's tests run the network path unless they ask for another: the tiny test model's
     answers always fail the check, and the global path would multiply every request's model calls.
-    Tests of `auto` and `global` name the method (or set IFNET_DEFAULT_METHOD) themselves."""
+    Tests of `auto` and `global` name the method (or set IFNET_DEFAULT_METHOD) themselves. They also
+    match features in the worker unless they ask for its child process (test_faults.py): a child
+    spawned at each of the many apps' starts added over a minute to the run, and stand-ins for
+    feature matching reach it only in the worker."""
     os.environ["IFNET_DEFAULT_METHOD"] = "ifnet"
+    os.environ["IFNET_ISOLATE_FEATURE_MATCHING"] = "false"
 
 
 @pytest.fixture

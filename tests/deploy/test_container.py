@@ -280,9 +280,17 @@ def container(image) -> Iterator[tuple[str, str]]:
 
 
 def test_image_registers_known_pair(container):
-    _, base_url = container
+    cid, base_url = container
     answer = check_known_registration(base_url).json()
     report(f"docker run: /register took {answer['timings_ms']['total_ms']:.0f} ms")
+    # Each of the two workers (spawned processes) matches features in a spawned child of its own.
+    count = (
+        "import pathlib; spawned = {int(p.parent.name): int(p.parent.joinpath('stat').read_text().rsplit(')', 1)[1]"
+        ".split()[1]) for p in pathlib.Path('/proc').glob('[0-9]*/cmdline') if b'spawn_main' in p.read_bytes()}; "
+        "print(sum(parent in spawned for parent in spawned.values()))"
+    )
+    children = int(run(["docker", "exec", cid, "python", "-c", count], timeout=60).stdout)
+    assert children == 2, f"{children} feature matching processes, not one per worker"
 
 
 def test_image_serves_its_docs_offline(container, tmp_path):

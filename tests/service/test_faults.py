@@ -1,4 +1,5 @@
-"""Faults: a bad model file, a pair timing out inside a running batch, clients that vanish.
+"""Faults: a bad model file, a pair timing out inside a running batch, feature matching crashing,
+clients that vanish.
 
 Related checks elsewhere (not repeated here): a missing model file (test_process.py and
 test_engine.py), a queued pair timing out (504) and a queued client disconnecting (499)
@@ -20,7 +21,7 @@ from pathlib import Path
 import httpx
 import numpy as np
 import pytest
-from conftest import free_port, register_head, service_process, vanishing_request
+from conftest import free_port, metric_values, register_head, service_process, vanishing_request
 
 from service.batcher import MicroBatcher, RequestTimeoutError
 from service.engine import OnnxEngine
@@ -166,6 +167,164 @@ async def test_a_pair_timing_out_mid_batch_does_not_affect_the_others(tiny_model
         np.testing.assert_allclose(result.translation, translation[0], atol=1e-6)
     assert [result.batch_size for result in results] == [1, 3, 3, 1]  # the batch still counted three
     assert batcher.queue_depth == 0
+
+
+# ---------------------------------------------------------------- feature matching crashing
+
+
+CRASHING_POINTS = 97  # feature matching crashes on clouds of this many points (crash_on_97_points)
+
+
+def crash_on_97_points(source, target, spacing, spacings):
+    """feature_match, but a segfault on clouds of CRASHING_POINTS points, as native code's crash on
+    the clouds it cannot handle (KISS-Matcher's on clouds far apart did, before they were moved)."""
+    if len(source) == CRASHING_POINTS:
+        import ctypes
+
+        ctypes.string_at(0)  # reads address 0: SIGSEGV
+    from model.geometry import feature_match
+
+    return feature_match(source, target, spacing, spacings)
+
+
+def sample_pair(points: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The example table at `points` points per cloud, and its true transform."""
+    from service.formats import read_cloud_file
+
+    truth = np.loadtxt(REPO / "examples" / "true_transform.txt")
+    source = read_cloud_file(REPO / "examples" / "source.ply")
+    target = read_cloud_file(REPO / "examples" / "target.pcd")
+    rng = np.random.default_rng(0)
+    return source[rng.choice(len(source), points, replace=False)], target[: 2 * points], truth
+
+
+def refusing(source, target, spacing, spacings):
+    raise ValueError(f"no features on {len(source)} points")
+
+
+def test_feature_matchings_child_process_answers_as_feature_matching_does():
+    """Its answers, and its exceptions, which leave the child serving."""
+    from model.geometry import feature_match, point_spacing
+    from service.features import IsolatedFeatureMatch
+
+    source, target, _ = sample_pair(600)
+    spacing = max(point_spacing(source), point_spacing(target))
+    matcher = IsolatedFeatureMatch()
+    try:
+        found = matcher(source, target, spacing)
+        child = matcher._child
+        matcher.match = refusing
+        with pytest.raises(ValueError, match="no features on 600 points"):
+            matcher(source, target, spacing)
+        assert matcher._child is child and child.is_alive()
+    finally:
+        matcher.close()
+    expected = feature_match(source, target, spacing)
+    np.testing.assert_allclose(found[0], expected[0], atol=1e-9)
+    np.testing.assert_allclose(found[1], expected[1], atol=1e-9)
+
+
+def stuck_on_97_points(source, target, spacing, spacings):
+    """crash_on_97_points, but stuck (as native code in an endless loop) instead of crashing."""
+    if len(source) == CRASHING_POINTS:
+        time.sleep(3600)
+    return crash_on_97_points(source, target, spacing, spacings)
+
+
+def test_feature_matching_stuck_in_its_child_is_killed_and_answered_as_finding_nothing(monkeypatch):
+    from model.geometry import feature_match, point_spacing
+    from service import features
+
+    monkeypatch.setattr(features, "MAX_SECONDS", 2.0)
+    failures = []
+    matcher = features.IsolatedFeatureMatch(stuck_on_97_points, on_failure=failures.append)
+    stuck, target, _ = sample_pair(CRASHING_POINTS)
+    source, _, _ = sample_pair(600)
+    spacing = max(point_spacing(source), point_spacing(target))
+    try:
+        matcher.start()
+        first = matcher._child
+        found = matcher(stuck, target, spacing)
+        assert not first.is_alive() and matcher._child is None  # killed, not left running
+        again = matcher(source, target, spacing)
+    finally:
+        matcher.close()
+    assert failures == ["timeout"]
+    np.testing.assert_array_equal(found[0], np.eye(3))
+    np.testing.assert_array_equal(found[1], np.zeros(3))
+    np.testing.assert_allclose(again[0], feature_match(source, target, spacing)[0], atol=1e-9)  # a new child
+
+
+@pytest.mark.anyio
+async def test_a_crash_in_feature_matching_costs_the_pair_its_guess_not_the_worker(serve, shipped_model):
+    """The crash happens in feature matching's child process: were it in the worker, it would end this
+    test run. The pair is answered without the guess, the next one gets a new child, and /metrics
+    counts the crash."""
+    import multiprocessing
+
+    from model.geometry import rotation_angle_deg
+
+    settings = Settings(model_path=shipped_model, default_method="auto", isolate_feature_matching=True)
+    crashing, _, truth = sample_pair(CRASHING_POINTS)
+    source, target, _ = sample_pair(600)
+    before = set(multiprocessing.active_children())  # other tests' children may still be exiting
+    async with serve(settings) as (app, client):
+        state = app.state.service
+        state.feature_match.match = crash_on_97_points
+        answers = []
+        for pair in ((crashing, target), (source, target)):
+            request = {"source": pair[0].tolist(), "target": pair[1].tolist(), "refine": True}
+            answers.append(await client.post("/register", json=request))
+        metrics = metric_values((await client.get("/metrics")).text)
+        children = set(multiprocessing.active_children()) - before
+    assert [answer.status_code for answer in answers] == [200, 200], answers[0].text
+    failures = ("ifnet_feature_matching_failures_total", ("reason", "crash"))
+    assert metrics[failures] == 1  # not again on the second pair
+    for answer in answers:
+        rotation = np.asarray(answer.json()["rotation"])
+        assert rotation_angle_deg(rotation, truth[:3, :3]) < 2.0
+    assert len(children) == 1  # the crashed child is gone, the new one serves
+    for _ in range(200):  # hang guard: the app stopped, its child exits
+        if not children & set(multiprocessing.active_children()):
+            break
+        time.sleep(0.05)
+    else:
+        raise AssertionError("feature matching's child process outlived the app")
+
+
+def process_table() -> dict[int, tuple[str, int]]:
+    """Every process's state letter and parent, from /proc."""
+    found = {}
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            fields = stat.read_text().rsplit(")", 1)[1].split()  # after "(command name)": state, ppid, ...
+        except OSError:  # gone meanwhile
+            continue
+        found[int(stat.parent.name)] = (fields[0], int(fields[1]))
+    return found
+
+
+def live_children(pid: int) -> set[int]:
+    return {child for child, (state, parent) in process_table().items() if parent == pid and state != "Z"}
+
+
+@pytest.mark.skipif(not Path("/proc/self/stat").is_file(), reason="reads the process table from /proc")
+def test_feature_matchings_child_ends_with_a_worker_killed_outright(tmp_path, tiny_model):
+    """SIGKILL (or the OOM killer) gives the worker no chance to stop its child: the child sees its
+    parent gone and exits instead of waiting for work forever."""
+    with service_process(tmp_path, tiny_model, isolate_feature_matching="true") as (process, _, _):
+        children = live_children(process.pid)  # feature matching's child, and multiprocessing's resource tracker
+        assert len(children) == 2, children
+        process.kill()
+        process.wait(timeout=30)
+    for _ in range(200):  # hang guard: the child looks every PARENT_POLL_S
+        table = process_table()
+        alive = {pid for pid in children if pid in table and table[pid][0] != "Z"}
+        if not alive:
+            break
+        time.sleep(0.05)
+    else:
+        raise AssertionError(f"processes {alive} outlived their worker")
 
 
 # ---------------------------------------------------------------- clients that vanish

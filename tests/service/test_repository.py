@@ -240,7 +240,8 @@ async def test_auto_asks_a_models_draft_and_refines_its_answer(serve, repository
     monkeypatch.setattr(registration, "feature_match", lambda *args: (np.eye(3), np.array([0.3, -0.2, 0.1])))
     (repository / "drafts").mkdir()
     with_points(shutil.copy(tiny_model, repository / "drafts" / "object.onnx"), INDOOR_POINTS, time_steps=1, n_iters=1)
-    async with serve(Settings(model_repository=repository)) as (app, client):
+    # The stand-in for feature matching runs in this process (a child process would run the real one).
+    async with serve(Settings(model_repository=repository, isolate_feature_matching=False)) as (app, client):
         auto = (await client.post("/register", json=body(method="auto"))).json()
         network = (await client.post("/register", json=body(method="ifnet"))).json()
         listed = (await client.get("/v2/models")).json()
@@ -273,7 +274,8 @@ async def test_when_the_drafts_answer_and_feature_matchings_fail_auto_asks_the_m
     engine = OnnxEngine(repository / "object.onnx", threads=1)
     engine.draft = Turned(OnnxEngine(draft_file, threads=1, name="object/draft"))
     engines = [engine, OnnxEngine(repository / "indoor.onnx", threads=1)]
-    async with serve(Settings(model_repository=repository, warmup=False), engines=engines) as (app, client):
+    settings = Settings(model_repository=repository, warmup=False, isolate_feature_matching=False)  # the stand-in's
+    async with serve(settings, engines=engines) as (app, client):
         auto = (await client.post("/register", json=body(method="auto"))).json()
         metrics = metric_values((await client.get("/metrics")).text)
     assert (auto["model"]["name"], auto["stage"], auto["verified"]) == ("object", "ifnet", True)
