@@ -27,8 +27,8 @@ class Settings(BaseSettings):
     model_path: Path | None = Field(
         None, description="One ONNX model file to serve alone instead of the repository's, named as there."
     )
-    # Most of a pair's work (feature matching, refinement, sampling, parsing) holds Python's interpreter
-    # lock, so one process keeps about one CPU busy however many requests it has.
+    # Most of a pair's work (refinement, sampling, parsing; feature matching too, but in a child process)
+    # holds Python's interpreter lock, so one process keeps about one CPU busy however many requests it has.
     workers: int | None = Field(
         None,
         ge=1,
