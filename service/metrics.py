@@ -94,6 +94,8 @@ class Metrics:
             ["reason"],
             registry=self.registry,
         )
+        for reason in ("crash", "timeout"):  # at zero from the start, so that a rate over them is defined
+            self.feature_matching_failures.labels(reason)
         self.ready = Gauge(
             "ifnet_ready",
             "1 once every model is loaded and warmed up (in every worker).",
