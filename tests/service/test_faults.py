@@ -146,8 +146,9 @@ async def test_a_pair_timing_out_mid_batch_does_not_affect_the_others(tiny_model
     batcher.start()
     first = asyncio.ensure_future(batcher.submit(*clouds(0), timeout_s=60))
     await wait_until(lambda: engine.calls == [1], "first call running")
-    # Three pairs queue behind it; the middle one will give up while their batch is running.
-    impatient = asyncio.ensure_future(batcher.submit(*clouds(1), timeout_s=0.3))
+    # Three pairs queue behind it; the middle one will give up while their batch is running (its
+    # time must not run out before the batch starts, even on a machine slowed down by other work).
+    impatient = asyncio.ensure_future(batcher.submit(*clouds(1), timeout_s=2.0))
     patient = [asyncio.ensure_future(batcher.submit(*clouds(seed), timeout_s=60)) for seed in (2, 3)]
     await wait_until(lambda: batcher.queue_depth == 3, "three pairs queued")
     engine.gates[0].set()
