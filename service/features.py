@@ -25,6 +25,7 @@ from model.geometry import FEATURE_VOXEL_SPACINGS, feature_match
 logger = logging.getLogger(__name__)
 
 FeatureMatch = Callable[..., tuple[np.ndarray, np.ndarray]]  # feature_match's signature
+FAILURES = ("crash", "timeout")  # the reasons a call answers without the matcher (on_failure's argument)
 PARENT_POLL_S = 1.0  # how often the child looks whether its worker still lives
 MAX_SECONDS = 10.0  # a call that takes longer is stuck (0.15 s at most on the benchmarks' real scans)
 
@@ -63,7 +64,7 @@ class IsolatedFeatureMatch:
     spawned (not forked: the worker runs ONNX Runtime's threads) by `start` or the first call, and
     again by the first call after a failure: a crash, or no answer within MAX_SECONDS (the child is
     then killed). Either way the call answers as feature matching does where it finds nothing, and
-    `on_failure` gets "crash" or "timeout" (the service counts them). The calling thread talks to the
+    `on_failure` gets the reason, one of FAILURES (the service counts them). The calling thread talks to the
     child itself, with no thread between them: each hand-over between threads waits for the
     interpreter lock."""
 

@@ -16,6 +16,8 @@ from prometheus_client import (
 )
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
+from service.features import FAILURES
+
 # Methods labelled by name; any other (clients may send made-up ones) is counted as "other".
 HTTP_METHODS = frozenset({"GET", "HEAD", "POST", "PUT", "DELETE", "OPTIONS", "PATCH", "TRACE", "CONNECT"})
 LATENCY_BUCKETS = (0.01, 0.025, 0.05, 0.075, 0.1, 0.15, 0.2, 0.3, 0.5, 0.75, 1.0, 2.0, 5.0, 10.0, 30.0)
@@ -94,7 +96,7 @@ class Metrics:
             ["reason"],
             registry=self.registry,
         )
-        for reason in ("crash", "timeout"):  # at zero from the start, so that a rate over them is defined
+        for reason in FAILURES:  # at zero from the start, so that a rate over them is defined
             self.feature_matching_failures.labels(reason)
         self.ready = Gauge(
             "ifnet_ready",

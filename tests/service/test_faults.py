@@ -299,20 +299,17 @@ async def test_a_crash_in_feature_matching_costs_the_pair_its_guess_not_the_work
         raise AssertionError("feature matching's child process outlived the app")
 
 
-def process_table() -> dict[int, tuple[str, int]]:
-    """Every process's state letter and parent, from /proc."""
+def live_processes() -> dict[int, int]:
+    """Every live process's parent, from /proc (zombies, which have ended, left out)."""
     found = {}
     for stat in Path("/proc").glob("[0-9]*/stat"):
         try:
-            fields = stat.read_text().rsplit(")", 1)[1].split()  # after "(command name)": state, ppid, ...
+            state, parent = stat.read_text().rsplit(")", 1)[1].split()[:2]  # after "(command name)"
         except OSError:  # gone meanwhile
             continue
-        found[int(stat.parent.name)] = (fields[0], int(fields[1]))
+        if state != "Z":
+            found[int(stat.parent.name)] = int(parent)
     return found
-
-
-def live_children(pid: int) -> set[int]:
-    return {child for child, (state, parent) in process_table().items() if parent == pid and state != "Z"}
 
 
 @pytest.mark.skipif(not Path("/proc/self/stat").is_file(), reason="reads the process table from /proc")
@@ -320,13 +317,13 @@ def test_feature_matchings_child_ends_with_a_worker_killed_outright(tmp_path, ti
     """SIGKILL (or the OOM killer) gives the worker no chance to stop its child: the child sees its
     parent gone and exits instead of waiting for work forever."""
     with service_process(tmp_path, tiny_model, isolate_feature_matching="true") as (process, _, _):
-        children = live_children(process.pid)  # feature matching's child, and multiprocessing's resource tracker
+        # feature matching's child, and multiprocessing's resource tracker
+        children = {pid for pid, parent in live_processes().items() if parent == process.pid}
         assert len(children) == 2, children
         process.kill()
         process.wait(timeout=30)
     for _ in range(200):  # hang guard: the child looks every PARENT_POLL_S
-        table = process_table()
-        alive = {pid for pid in children if pid in table and table[pid][0] != "Z"}
+        alive = children & live_processes().keys()
         if not alive:
             break
         time.sleep(0.05)
