@@ -298,7 +298,7 @@ def _prepare(
         coarse = check
         if min(len(source_check), len(target_check)) > 2 * COARSE_POINTS:  # else it saves too little
             coarse = AlignmentClouds(
-                subset(source_check, COARSE_POINTS), subset(target_check, COARSE_POINTS), check.spacing
+                subset(source_check, COARSE_POINTS), subset(target_check, COARSE_POINTS), check.spacing, threads
             )
         scored = subset(source_check, STARTS_SCORE_POINTS)
     else:
