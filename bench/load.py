@@ -3,16 +3,20 @@
     python -m bench.load scaling                       # 16 clients vs 1, alternating windows -> scaling.json
     python -m bench.load scaling --setting 1call=model_calls=1 --rounds 4 --window 6
     python -m bench.load overload                      # 2x capacity for 60 s, then SIGTERM -> overload.json
+    python -m bench.load soak                          # 4 clients for 10 min, memory per minute -> soak.json
 
 scaling: one server per setting runs throughout; windows of 1 and of 16 closed-loop clients
 alternate, the order rotating each round, so both counts of a round meet the same machine phase.
 overload: capacity from 16 closed-loop clients, then Poisson arrivals at `--factor` x capacity for
 `--duration` s, every request followed to its answer while RSS and /ready are sampled; then
 closed-loop clients again and SIGTERM in the middle of them.
+soak: closed-loop clients for `--duration` s on the ModelNet pairs and the real pairs with ground
+truth (20k-27k points each) in turn, RSS sampled each second: does memory settle, or keep growing?
 """
 
 import argparse
 import asyncio
+import itertools
 import json
 import random
 import statistics
@@ -27,12 +31,16 @@ import httpx
 import numpy as np
 
 from bench import harness
+from service.features import resident_mb
 
 HEADERS = {"content-type": "application/json"}
 
 
-def bodies(count: int = 8) -> list[bytes]:
+def bodies(count: int = 8, real: bool = False) -> list[bytes]:
+    """`count` ModelNet pairs, and with `real` the real pairs with ground truth after each of them."""
     pairs = harness.modelnet_pairs(count)
+    if real:
+        pairs = [pair for both in zip(pairs, itertools.cycle(harness.truth_pairs())) for pair in both]
     return [json.dumps({"source": p.source.tolist(), "target": p.target.tolist()}).encode() for p in pairs]
 
 
@@ -107,11 +115,7 @@ def rss_mb(pid: int) -> float:
     while pending:
         current = pending.pop()
         pending += children.get(current, [])
-        try:
-            status = Path(f"/proc/{current}/status").read_text()
-        except OSError:
-            continue
-        total += next((int(line.split()[1]) / 1024 for line in status.splitlines() if line.startswith("VmRSS:")), 0.0)
+        total += resident_mb(current)
     return total
 
 
@@ -225,6 +229,56 @@ def overload(args) -> int:
     return 0
 
 
+REPLACED = "ifnet_feature_matching_replaced_total "  # its series in /metrics (no labels)
+
+
+def soak(args) -> int:
+    payloads = bodies(real=True)
+    service = harness.Service()
+    try:
+        service.wait_ready()
+        record = {**harness.run_header(), "model": service.model(), "clients": args.clients}
+        print(f"{args.clients} clients for {args.duration:.0f} s", flush=True)
+        with Sampler(service, interval_s=1.0) as sampler:
+            outcomes, seconds = asyncio.run(closed_loop(service.url, payloads, args.clients, args.duration))
+        health = httpx.get(f"{service.url}/health", timeout=10, trust_env=False).json()
+        metrics = httpx.get(f"{service.url}/metrics", timeout=10, trust_env=False).text
+    finally:
+        service.stop()
+    rss = np.array(sampler.rss)
+    minutes = []
+    started = min(o["at"] for o in outcomes)
+    for minute in range(round(seconds / 60)):
+        inside = (rss[:, 0] >= 60 * minute) & (rss[:, 0] < 60 * (minute + 1))
+        answered = [o for o in outcomes if 60 * minute <= o["at"] - started < 60 * (minute + 1)]
+        minutes.append({"rss_mb_max": float(rss[inside, 1].max()), **summary(answered, 60.0)})
+    second_half = rss[rss[:, 0] >= rss[-1, 0] / 2]
+    record["soak"] = {
+        "seconds": seconds,
+        **summary(outcomes, seconds),
+        "rss_mb": {
+            "first": float(rss[0, 1]),
+            "end": float(rss[-1, 1]),
+            "max": float(rss[:, 1].max()),
+            "slope_per_min_second_half": float(np.polyfit(second_half[:, 0], second_half[:, 1], 1)[0] * 60),
+        },
+        "ready_during": dict(sampler.ready),
+        "feature_matching_replaced": sum(
+            float(line.split()[-1]) for line in metrics.splitlines() if line.startswith(REPLACED)
+        ),
+        "minutes": minutes,
+        "health_after": health,
+    }
+    for index, minute in enumerate(minutes):
+        print(
+            f"minute {index + 1}: RSS max {minute['rss_mb_max']:.0f} MB, {minute['pairs_per_s']:.2f} pairs/s, "
+            f"p99 {minute['p99_ms'] or 0:.0f} ms, {minute['statuses']}"
+        )
+    print("soak:", {k: v for k, v in record["soak"].items() if k not in ("minutes", "health_after")}, flush=True)
+    harness.write_record(args.out or harness.RESULTS / "soak.json", record)
+    return 0
+
+
 async def sigterm_under_load(service: harness.Service, payloads: list[bytes], after_s: float) -> dict:
     """16 closed-loop clients; SIGTERM after `after_s`; what became of the requests in flight then."""
     signalled: list[float] = []
@@ -264,11 +318,18 @@ def main(argv: list[str] | None = None) -> int:
     o.add_argument("--duration", type=float, default=60.0)
     o.add_argument("--capacity-seconds", type=float, default=15.0)
     o.add_argument("--sigterm-after", type=float, default=5.0)
+    k = commands.add_parser("soak", help="steady load for minutes, memory sampled")
+    k.add_argument("--clients", type=int, default=4)
+    k.add_argument("--duration", type=float, default=600.0)
     args = parser.parse_args(argv)
     if args.command == "scaling":
         if not (1 <= args.rounds <= 30 and 2 <= args.window <= 60):
             parser.error("--rounds must be in [1, 30] and --window in [2, 60]")
         return scaling(args)
+    if args.command == "soak":
+        if not (1 <= args.clients <= 64 and 60 <= args.duration <= 3600):
+            parser.error("--clients must be in [1, 64] and --duration in [60, 3600] s")
+        return soak(args)
     if not (0 < args.duration <= 300 and 0 < args.factor <= 10 and 0 < args.capacity_seconds <= 60):
         parser.error("--duration must be in (0, 300], --factor in (0, 10], --capacity-seconds in (0, 60]")
     return overload(args)

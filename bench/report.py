@@ -139,6 +139,27 @@ def overload(record: dict) -> list[str]:
     return lines + table(["measure", "value"], rows)
 
 
+def soak(record: dict) -> list[str]:
+    k = record["soak"]
+    lines = [f"## Service: {record['clients']} clients for {k['seconds'] / 60:.0f} minutes, memory", ""]
+    lines += [*provenance(record), "ModelNet pairs and the real pairs with ground truth in turn, as JSON.", ""]
+    rows = [
+        [index + 1, minute["rss_mb_max"], minute["pairs_per_s"], minute["p99_ms"], minute["statuses"]]
+        for index, minute in enumerate(k["minutes"])
+    ]
+    lines += table(["minute", "RSS MB of all its processes, max", "pairs/s", "p99 ms", "answers"], rows)
+    summary = [
+        [
+            "RSS MB first, end, max; slope over the second half MB/min",
+            "{first:.0f}, {end:.0f}, {max:.0f}; {slope_per_min_second_half:+.1f}".format(**k["rss_mb"]),
+        ],
+        ["feature matching processes replaced (IFNET_FEATURE_MATCHING_MAX_MB)", k["feature_matching_replaced"]],
+        ["answers; p50 / p99 ms", f"{cell(k['statuses'])}; {k['p50_ms']:,.0f} / {k['p99_ms']:,.0f}"],
+        ["/ready during", k["ready_during"]],
+    ]
+    return lines + table(["measure", "value"], summary)
+
+
 RENDER = {
     "compare": compare,
     "symmetric": symmetric,
@@ -146,6 +167,7 @@ RENDER = {
     "settings": settings,
     "scaling": scaling,
     "overload": overload,
+    "soak": soak,
 }
 
 

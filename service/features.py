@@ -7,7 +7,9 @@ the child it costs one request its feature guess: the matcher answers as where i
 identity, which the check then fails), the request goes on to the networks and the rotated starts,
 and the next request gets a new child. So does a child stuck in native code, which is killed. The
 matcher also holds the interpreter lock while it runs (70-150 ms on a real scan's pair): in the
-child, the worker's event loop and other threads go on meanwhile.
+child, the worker's event loop and other threads go on meanwhile. And it keeps part of what each
+call allocates (about 0.5 MB per real scan's pair, never freed): a child grown past its memory bound
+is replaced, between calls.
 """
 
 import logging
@@ -17,6 +19,7 @@ import threading
 import time
 from collections.abc import Callable
 from multiprocessing.connection import Connection
+from pathlib import Path
 
 import numpy as np
 
@@ -28,6 +31,15 @@ FeatureMatch = Callable[..., tuple[np.ndarray, np.ndarray]]  # feature_match's s
 FAILURES = ("crash", "timeout")  # the reasons a call answers without the matcher (on_failure's argument)
 PARENT_POLL_S = 1.0  # how often the child looks whether its worker still lives
 MAX_SECONDS = 10.0  # a call that takes longer is stuck (0.15 s at most on the benchmarks' real scans)
+
+
+def resident_mb(pid: int) -> float:
+    """The process's resident memory in MB, from /proc; 0 where that cannot be read."""
+    try:
+        status = Path(f"/proc/{pid}/status").read_text()
+    except OSError:
+        return 0.0
+    return next((int(line.split()[1]) / 1024 for line in status.splitlines() if line.startswith("VmRSS:")), 0.0)
 
 
 def _serve(connection: Connection, parent: int) -> None:
@@ -66,13 +78,22 @@ class IsolatedFeatureMatch:
     then killed). Either way the call answers as feature matching does where it finds nothing, and
     `on_failure` gets the reason, one of FAILURES (the service counts them). The calling thread talks to the
     child itself, with no thread between them: each hand-over between threads waits for the
-    interpreter lock."""
+    interpreter lock. A child whose resident memory passes `max_mb` after a call is replaced by a
+    new one on a thread of its own, off that call's time, and `on_replaced` is called."""
 
-    def __init__(self, match: FeatureMatch = feature_match, on_failure: Callable[[str], None] = lambda reason: None):
+    def __init__(
+        self,
+        match: FeatureMatch = feature_match,
+        on_failure: Callable[[str], None] = lambda reason: None,
+        max_mb: float | None = None,
+        on_replaced: Callable[[], None] = lambda: None,
+    ):
         self.match, self.on_failure = match, on_failure
+        self.max_mb, self.on_replaced = max_mb, on_replaced
         self._lock = threading.Lock()  # calls come from the requests' worker threads
         self._child: multiprocessing.process.BaseProcess | None = None
         self._connection: Connection | None = None
+        self._closed = False  # no child is spawned to replace one once closed
 
     def _running(self) -> Connection:
         """The child's end of the pipe, the child spawned first where none runs. Holds the lock."""
@@ -97,7 +118,7 @@ class IsolatedFeatureMatch:
         self, source: np.ndarray, target: np.ndarray, spacing: float, spacings: float = FEATURE_VOXEL_SPACINGS
     ) -> tuple[np.ndarray, np.ndarray]:
         with self._lock:
-            failure = None
+            failure = grown = None
             try:
                 connection = self._running()
                 connection.send((self.match, source, target, spacing, spacings))
@@ -109,6 +130,10 @@ class IsolatedFeatureMatch:
                 failure = "crash"
             if failure is not None:
                 self._stop(kill=True)
+            elif self.max_mb is not None and resident_mb(self._child.pid) > self.max_mb:
+                grown = self._child
+        if grown is not None:
+            threading.Thread(target=self._replace, args=(grown,), name="feature-matching-replace", daemon=True).start()
         if failure is not None:
             self.on_failure(failure)
             logger.error(
@@ -121,6 +146,21 @@ class IsolatedFeatureMatch:
         if status == "error":
             raise answer
         return answer
+
+    def _replace(self, grown: multiprocessing.process.BaseProcess) -> None:
+        """A new child in place of `grown`, unless it was replaced or closed meanwhile."""
+        with self._lock:
+            if self._child is not grown or self._closed:
+                return
+            size = resident_mb(grown.pid)
+            self._stop()
+            try:
+                self._running()
+            except Exception:  # the next call spawns one, or fails as it would without this
+                logger.exception("feature matching's new process failed to start")
+                return
+        self.on_replaced()
+        logger.info("feature matching's process replaced: it held %.0f MB, more than %.0f", size, self.max_mb)
 
     def _stop(self, kill: bool = False) -> None:
         """Close the pipe, upon which the child ends (killed at once with `kill`: it may be stuck), and
@@ -138,4 +178,5 @@ class IsolatedFeatureMatch:
 
     def close(self) -> None:
         with self._lock:
+            self._closed = True
             self._stop()

@@ -98,6 +98,12 @@ class Metrics:
         )
         for reason in FAILURES:  # at zero from the start, so that a rate over them is defined
             self.feature_matching_failures.labels(reason)
+        self.feature_matching_replaced = Counter(
+            "ifnet_feature_matching_replaced",
+            "Feature matching's child process replaced by a new one after its resident memory passed "
+            "IFNET_FEATURE_MATCHING_MAX_MB.",
+            registry=self.registry,
+        )
         self.ready = Gauge(
             "ifnet_ready",
             "1 once every model is loaded and warmed up (in every worker).",

@@ -100,6 +100,13 @@ class Settings(BaseSettings):
         "there costs the pairs in it their feature guess (they are answered without it), not the worker and every "
         "request in flight on it, and the worker serves on while it runs.",
     )
+    feature_matching_max_mb: float = Field(
+        256.0,
+        gt=0.0,
+        description="Feature matching's child process is replaced by a new one once its resident memory passes this "
+        "many MB: KISS-Matcher never frees part of what each call allocates (about 0.5 MB per pair of real scans). "
+        "With isolate_feature_matching off, that memory accumulates in the worker.",
+    )
     warmup: bool = Field(True, description="Run each model once per batch size before reporting ready.")
     shutdown_timeout_s: float = Field(30.0, gt=0.0, description="Grace period for in-flight requests on SIGTERM.")
     log_level: Literal["critical", "error", "warning", "info", "debug"] = "info"

@@ -61,7 +61,11 @@ class ServiceState:
         self.feature_match: IsolatedFeatureMatch | None = None  # None: feature matching in the worker itself
         if settings.isolate_feature_matching:
             failures = self.metrics.feature_matching_failures
-            self.feature_match = IsolatedFeatureMatch(on_failure=lambda reason: failures.labels(reason).inc())
+            self.feature_match = IsolatedFeatureMatch(
+                on_failure=lambda reason: failures.labels(reason).inc(),
+                max_mb=settings.feature_matching_max_mb,
+                on_replaced=self.metrics.feature_matching_replaced.inc,
+            )
 
     @property
     def in_flight(self) -> int:

@@ -261,6 +261,47 @@ def test_feature_matching_stuck_in_its_child_is_killed_and_answered_as_finding_n
     np.testing.assert_array_equal(again[1], expected[1])  # a new child's answer
 
 
+HELD = []  # what holding_20_mb keeps, in the child
+
+
+def holding_20_mb(source, target, spacing, spacings):
+    """centres_apart, but keeping 20 MB resident per call, as KISS-Matcher keeps part of what it allocates."""
+    HELD.append(np.ones(20 * 2**20 // 8))
+    return centres_apart(source, target, spacing, spacings)
+
+
+@pytest.mark.skipif(not Path("/proc/self/status").is_file(), reason="reads resident memory from /proc")
+def test_feature_matchings_child_grown_past_its_memory_bound_is_replaced():
+    """Past `max_mb` after a call, the child is replaced by a new one, off the call's time: that call
+    and the next are answered, the next by a child that holds little."""
+    from service import features
+
+    source, target, _ = sample_pair(600)
+    expected = centres_apart(source, target, 0.01, 2.5)
+    replaced = []
+    matcher = features.IsolatedFeatureMatch(holding_20_mb, on_replaced=lambda: replaced.append(1))
+    try:
+        answers = [matcher(source, target, 0.01, 2.5)]
+        grown = matcher._child
+        matcher.max_mb = features.resident_mb(grown.pid) + 30.0  # passed on the third call
+        answers.append(matcher(source, target, 0.01, 2.5))
+        assert replaced == [] and matcher._child is grown
+        answers.append(matcher(source, target, 0.01, 2.5))
+        for _ in range(600):  # hang guard: a new child is spawned and imports the matcher
+            if replaced:
+                break
+            time.sleep(0.05)
+        assert replaced == [1] and not grown.is_alive()
+        answers.append(matcher(source, target, 0.01, 2.5))
+        fresh = matcher._child
+        assert fresh is not grown and features.resident_mb(fresh.pid) < matcher.max_mb
+    finally:
+        matcher.close()
+    for rotation, translation in answers:
+        np.testing.assert_array_equal(rotation, expected[0])
+        np.testing.assert_array_equal(translation, expected[1])
+
+
 @pytest.mark.anyio
 async def test_a_crash_in_feature_matching_costs_the_pair_its_guess_not_the_worker(serve, shipped_model):
     """The crash happens in feature matching's child process: were it in the worker, it would end this
