@@ -50,7 +50,7 @@ async def send(client: httpx.AsyncClient, body: bytes) -> dict:
         response = await client.post("/register", content=body, headers=HEADERS)
         status, retry_after = str(response.status_code), float(response.headers.get("retry-after", 0))
     except httpx.HTTPError as error:
-        status, retry_after = f"error:{type(error).__name__}", 0.0
+        status, retry_after = f"error:{type(error).__name__}: {error}", 0.0
     return {"at": sent, "s": time.perf_counter() - sent, "status": status, "retry_after": retry_after}
 
 

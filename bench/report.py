@@ -142,7 +142,11 @@ def overload(record: dict) -> list[str]:
 def soak(record: dict) -> list[str]:
     k = record["soak"]
     lines = [f"## Service: {record['clients']} clients for {k['seconds'] / 60:.0f} minutes, memory", ""]
-    lines += [*provenance(record), "ModelNet pairs and the real pairs with ground truth in turn, as JSON.", ""]
+    lines += [
+        *provenance(record),
+        "ModelNet pairs and the real pairs with ground truth, as JSON (half the clients send each kind).",
+        "",
+    ]
     rows = [
         [index + 1, minute["rss_mb_max"], minute["pairs_per_s"], minute["p99_ms"], minute["statuses"]]
         for index, minute in enumerate(k["minutes"])

@@ -18,7 +18,10 @@ Lingering close: the service answers some requests before reading their body (40
 413 on the declared length, 429). No further request can follow on such a connection until the
 client has sent the rest of that body, and uvicorn's idle timer, stopped by every byte that
 arrives, would let a client that trickles it hold the connection forever; so the connection is
-closed once the answer is out. When a connection must close, uvicorn closes it at once, and the
+closed once the answer is out, and the answer says so (`connection: close`): a client that has
+sent the whole body by the time it reads the answer would otherwise keep the connection for its
+next request, and where the server's end came a moment after the answer, that request met the
+closed connection. When a connection must close, uvicorn closes it at once, and the
 kernel answers the body still arriving with a reset, which most clients report instead of the
 answer. Here the connection first shuts its sending
 side and reads and drops up to `max_drain_bytes` more for at most `drain_timeout_s`, as nginx's
@@ -76,11 +79,28 @@ class _LingeringTransport:
         return getattr(self._transport, name)
 
 
+class _Connection(h11.Connection):
+    """h11's server side of a connection, whose answers given before the request's body has arrived
+    say `connection: close` (the connection closes after them)."""
+
+    def send(self, event):
+        if isinstance(event, h11.Response) and self.their_state is h11.SEND_BODY:
+            headers = [(name, value) for name, value in event.headers if name != b"connection"]
+            event = h11.Response(
+                status_code=event.status_code, headers=[*headers, (b"connection", b"close")], reason=event.reason
+            )
+        return super().send(event)
+
+
 class ServiceProtocol(H11Protocol):
     head_timeout_s: float = _default("request_head_timeout_s")
     max_head_bytes: int = _default("max_head_bytes")
     max_drain_bytes: int = _default("max_body_bytes")
     drain_timeout_s: float = 10.0
+
+    def __init__(self, *args, **kwargs):
+        super().__init__(*args, **kwargs)
+        self.conn = _Connection(h11.SERVER, self.conn._max_incomplete_event_size)
 
     def connection_made(self, transport: asyncio.Transport) -> None:  # type: ignore[override]
         self._head_deadline: asyncio.TimerHandle | None = None

@@ -459,6 +459,21 @@ def test_a_body_refused_unread_still_gets_its_answer(tmp_path, tiny_model):
             assert limit <= sent < 2 * limit  # dropped up to the limit, then cut (plus socket buffers)
 
 
+@pytest.mark.slow
+def test_a_kept_alive_client_refused_before_its_body_arrived_is_answered_again(tmp_path, tiny_model):
+    """An answer sent while the body still arrives closes the connection once the body is drained. A
+    client that has sent the whole body by the time it reads the answer kept the connection for its
+    next request, which met the closed connection: `connection: close` tells it to open another."""
+    body = json.dumps({"source": SOURCE.tolist(), "target": TARGET.tolist()}).encode()
+    with service_process(tmp_path, tiny_model) as (_, url, _), httpx.Client(base_url=url, timeout=30) as client:
+        for _ in range(3):
+            refused = client.post("/nope", content=b"x" * 4_000_000)  # 404 before the body is read
+            assert refused.status_code == 404 and refused.headers["connection"] == "close"
+            answer = client.post("/register", content=body, headers={"Content-Type": "application/json"})
+            assert answer.status_code == 200, answer.text
+            assert "connection" not in answer.headers  # a body read whole: kept alive
+
+
 def test_uvicorn_and_h11_are_the_versions_the_connection_protocol_is_tested_on():
     """The protocol subclasses uvicorn's h11 protocol and reads h11's state: another version must
     fail here, loudly, before it fails subtly in production."""
