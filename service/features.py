@@ -130,10 +130,10 @@ class IsolatedFeatureMatch:
                 failure = "crash"
             if failure is not None:
                 self._stop(kill=True)
-            elif self.max_mb is not None and resident_mb(self._child.pid) > self.max_mb:
-                grown = self._child
+            elif self.max_mb is not None and (size := resident_mb(self._child.pid)) > self.max_mb:
+                grown = (self._child, size)
         if grown is not None:
-            threading.Thread(target=self._replace, args=(grown,), name="feature-matching-replace", daemon=True).start()
+            threading.Thread(target=self._replace, args=grown, name="feature-matching-replace", daemon=True).start()
         if failure is not None:
             self.on_failure(failure)
             logger.error(
@@ -147,12 +147,11 @@ class IsolatedFeatureMatch:
             raise answer
         return answer
 
-    def _replace(self, grown: multiprocessing.process.BaseProcess) -> None:
-        """A new child in place of `grown`, unless it was replaced or closed meanwhile."""
+    def _replace(self, grown: multiprocessing.process.BaseProcess, size: float) -> None:
+        """A new child in place of `grown` (found holding `size` MB), unless it was replaced or closed meanwhile."""
         with self._lock:
             if self._child is not grown or self._closed:
                 return
-            size = resident_mb(grown.pid)
             self._stop()
             try:
                 self._running()
