@@ -4,6 +4,7 @@
     python -m bench.load scaling --setting 1call=model_calls=1 --rounds 4 --window 6
     python -m bench.load overload                      # 2x capacity for 60 s, then SIGTERM -> overload.json
     python -m bench.load soak                          # 4 clients for 10 min, memory per minute -> soak.json
+    python -m bench.load --out docs/benchmarks/soak-one-cpu.json soak --setting workers=1 --setting threads=1
 
 scaling: one server per setting runs throughout; windows of 1 and of 16 closed-loop clients
 alternate, the order rotating each round, so both counts of a round meet the same machine phase.
@@ -256,10 +257,11 @@ REPLACED = "ifnet_feature_matching_replaced_total "  # its series in /metrics (n
 
 def soak(args) -> int:
     payloads = bodies(real=True)
-    service = harness.Service()
+    settings = dict(entry.split("=", 1) for entry in args.setting)
+    service = harness.Service(**settings)
     try:
         service.wait_ready()
-        record = {**harness.run_header(), "model": service.model(), "clients": args.clients}
+        record = {**harness.run_header(), "model": service.model(), "clients": args.clients, "settings": settings}
         print(f"{args.clients} clients for {args.duration:.0f} s", flush=True)
         with Sampler(service, interval_s=1.0) as sampler:
             outcomes, seconds = asyncio.run(closed_loop(service.url, payloads, args.clients, args.duration))
@@ -343,6 +345,7 @@ def main(argv: list[str] | None = None) -> int:
     k = commands.add_parser("soak", help="steady load for minutes, memory sampled")
     k.add_argument("--clients", type=int, default=4)
     k.add_argument("--duration", type=float, default=600.0)
+    k.add_argument("--setting", action="append", default=[], help="KEY=VALUE: an IFNET_* setting of the server")
     args = parser.parse_args(argv)
     if args.command == "scaling":
         if not (1 <= args.rounds <= 30 and 2 <= args.window <= 60):
@@ -351,6 +354,8 @@ def main(argv: list[str] | None = None) -> int:
     if args.command == "soak":
         if not (1 <= args.clients <= 64 and 60 <= args.duration <= 3600):
             parser.error("--clients must be in [1, 64] and --duration in [60, 3600] s")
+        if any("=" not in entry for entry in args.setting):
+            parser.error("--setting takes KEY=VALUE, e.g. --setting workers=1")
         return soak(args)
     if not (0 < args.duration <= 300 and 0 < args.factor <= 10 and 0 < args.capacity_seconds <= 60):
         parser.error("--duration must be in (0, 300], --factor in (0, 10], --capacity-seconds in (0, 60]")

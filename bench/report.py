@@ -144,7 +144,9 @@ def overload(record: dict) -> list[str]:
 
 def soak(record: dict) -> list[str]:
     k = record["soak"]
-    lines = [f"## Service: {record['clients']} clients for {k['seconds'] / 60:.0f} minutes, memory", ""]
+    settings = ", ".join(f"IFNET_{key.upper()}={value}" for key, value in record.get("settings", {}).items())
+    heading = f"## Service: {record['clients']} clients for {k['seconds'] / 60:.0f} minutes, memory"
+    lines = [f"{heading}, {settings}" if settings else heading, ""]
     lines += [
         *provenance(record),
         "ModelNet pairs and the real pairs with ground truth, as JSON (half the clients send each kind).",
@@ -175,6 +177,7 @@ RENDER = {
     "scaling": scaling,
     "overload": overload,
     "soak": soak,
+    "soak-one-cpu": soak,  # as one pod of deploy/: one worker on one thread
 }
 
 
