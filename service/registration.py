@@ -76,6 +76,9 @@ REFINE_MAX_SECONDS = 10.0
 # bring the answer within reach of the fine pass on the check's clouds.
 COARSE_DISTANCE_NORMALISED = 0.05
 COARSE_POINTS = 3_000
+# The coarse pass's distance in point spacings, at most: on a scan far wider than its spacing (a
+# LiDAR's rings) that share of its size spans metres, where GICP pulls a guess a degree off further off.
+COARSE_MAX_SPACINGS = 20.0
 # Feature matching's voxel follows each cloud's point spacing at up to this many points: the
 # check's sparser subset would give it a voxel too coarse for some real scans (docs/training/scenes.md).
 FEATURE_SPACING_POINTS = 20_000
@@ -342,11 +345,12 @@ class _Candidate:
 def refine_distances(spacing: float, scale: float, max_distance: float | None = None) -> list[float]:
     """The correspondence distances of one refinement, in the user's units: the user's own, else
     coarse to fine, first a share of the clouds' size (COARSE_DISTANCE_NORMALISED in the frame that
-    `scale` normalises to) and then REFINE_SPACINGS point spacings."""
+    `scale` normalises to, at most COARSE_MAX_SPACINGS point spacings) and then REFINE_SPACINGS
+    point spacings."""
     if max_distance:
         return [max_distance]
     fine = REFINE_SPACINGS * spacing
-    return [max(COARSE_DISTANCE_NORMALISED / scale, fine), fine]
+    return [min(max(COARSE_DISTANCE_NORMALISED / scale, fine), COARSE_MAX_SPACINGS * spacing), fine]
 
 
 def _checked(
