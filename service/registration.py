@@ -85,6 +85,9 @@ FEATURE_SPACING_POINTS = 20_000
 # Their voxel spans this many of those spacings: the matcher gets the check's sparser subset of a
 # real scan, whose noise wants wider features than the default 1.5 (service/README.md).
 THINNED_FEATURE_SPACINGS = 3.5
+# Where its answer on the check's subset of a larger cloud fails the check, it matches once more on up
+# to this many points of each cloud: on a LiDAR scan's rings the subset leaves it lost more often.
+WIDER_FEATURE_POINTS = 20_000
 # The global path's starts: the 24 rotations of a cube, every rotation within the network's range
 # of one of them; the network's answers from the best few (by fitness) are refined and checked.
 STARTS = Rotation.create_group("O").as_matrix()
@@ -435,20 +438,29 @@ class _FeatureGuess:
     seconds: float
 
 
-def _feature_guess(prepared: _Prepared, match: FeatureMatch | None = None) -> _FeatureGuess:
+def _feature_guess(prepared: _Prepared, match: FeatureMatch | None = None, points: int = 0) -> _FeatureGuess:
     """Feature matching (KISS-Matcher, or `match` with feature_match's signature), whatever the
-    rotation: a coarse answer."""
+    rotation, on the check's clouds or, where they are subsets, on up to `points` of each cloud: a
+    coarse answer."""
     started = time.perf_counter()
     check = prepared.check
-    spacing, spacings = check.spacing, FEATURE_VOXEL_SPACINGS
-    if len(prepared.source) > len(check.source) or len(prepared.target) > len(check.target):  # thinned
+    clouds, spacing, spacings = (check.source, check.target), check.spacing, FEATURE_VOXEL_SPACINGS
+    if _thinned(prepared):
         spacing = max(
             point_spacing(subset(cloud, FEATURE_SPACING_POINTS), threads=check.threads)
             for cloud in (prepared.source, prepared.target)
         )
         spacings = THINNED_FEATURE_SPACINGS
-    rotation, translation = (match or feature_match)(check.source, check.target, spacing, spacings)
+        if points:
+            clouds = (subset(prepared.source, points), subset(prepared.target, points))
+    rotation, translation = (match or feature_match)(*clouds, spacing, spacings)
     return _FeatureGuess(rotation, translation, time.perf_counter() - started)
+
+
+def _thinned(prepared: _Prepared) -> bool:
+    """The check runs on a subset of either cloud."""
+    check = prepared.check
+    return len(prepared.source) > len(check.source) or len(prepared.target) > len(check.target)
 
 
 def _finish_features(
@@ -773,6 +785,14 @@ async def _answer(
             # Feature matching's answer before the models': they follow only where it fails the check.
             if features_answer is None:
                 features_answer = await run_blocking(_finish_features, base, features, first.model, options)
+            if not features_answer.verified and _thinned(base) and WIDER_FEATURE_POINTS > CHECK_MAX_POINTS:
+                wider = await run_blocking(_feature_guess, base, match, WIDER_FEATURE_POINTS)
+                wider_answer = await run_blocking(_finish_features, base, wider, first.model, options)
+                if wider_answer.verified:
+                    discarded.append(features_answer.timings_ms)
+                    features, features_answer = wider, wider_answer
+                else:
+                    discarded.append(wider_answer.timings_ms)
             if features_answer.verified:
                 asked = []
         for network in asked:

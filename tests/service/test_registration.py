@@ -207,8 +207,10 @@ def test_auto_asks_the_draft_first_and_keeps_its_answer_only_where_feature_match
     assert asked == [("draft", 384), ("model", 768), *starts]
     assert (unconfirmed.stage, unconfirmed.verified) == ("ifnet", True)
     # The draft's answer, more than DRAFT_REACH_DEG from the guess, was set aside unrefined: the
-    # guess and then the model's answer were refined and checked; the starts all landed on the answer.
-    assert len(checked) == 2 and rotation_angle_deg(checked[0], np.eye(3)) == pytest.approx(0.0, abs=1e-9)
+    # guess (matched on the check's subset, then on more points: a large scan) and then the model's
+    # answer were refined and checked; the starts all landed on the answer.
+    assert len(checked) == 3
+    assert all(rotation_angle_deg(guess, np.eye(3)) == pytest.approx(0.0, abs=1e-9) for guess in checked[:2])
     assert unconfirmed.timings_ms["inference_ms"] == 26.0  # the discarded draft's call and the starts' were paid for
     other = run("auto", target, first_turned=True)  # only the first model's draft is asked
     assert asked == [("draft", 384), ("model", 768), ("indoor", 768), *starts]
@@ -300,10 +302,11 @@ def test_a_verified_draft_answer_the_guess_is_too_coarse_to_confirm_is_confirmed
         register_clouds(source, apply_transform(source, TRUE_ROTATION, TRUE_TRANSLATION), options, settings, networks)
     )
     # The refined guess lands elsewhere: the model is asked, and the guess is not refined a second time
-    # (the draft's answer, the guess and the model's answer are checked; the starts land on the answer).
+    # (the draft's answer, the guess, the guess matched again on more points of this large scan, and
+    # the model's answer are checked; the starts land on the answer).
     starts = [("draft", registration.STARTS_POINTS)] * 24
     assert asked == [("draft", 384), ("model", 768), *starts] and (other.stage, other.verified) == ("ifnet", True)
-    assert len(checked) == 3
+    assert len(checked) == 4
 
 
 def test_auto_asks_the_draft_again_from_feature_matchings_guess_for_a_turn_beyond_its_reach(real_scans, monkeypatch):
@@ -535,6 +538,39 @@ def test_feature_matching_finds_the_motion_of_two_samples_of_a_large_scan(real_s
     assert len(prepared.check.source) < len(prepared.source)  # thinned
     guess = registration._feature_guess(prepared)
     assert rotation_angle_deg(guess.rotation, TRUE_ROTATION) < 2.0
+
+
+@pytest.mark.parametrize("wider_points", [20_000, 0], ids=["wider", "once"])
+def test_feature_matching_lost_on_the_checks_subset_matches_again_on_more_points(real_scans, monkeypatch, wider_points):
+    """Under `auto`, where feature matching's answer on the check's subset of a large scan fails the
+    check, it matches once more on up to WIDER_FEATURE_POINTS of each cloud (a stand-in here, lost on
+    the subset and right on more points), and that answer, verified, is the request's."""
+    from service import registration
+
+    monkeypatch.setattr(registration, "WIDER_FEATURE_POINTS", wider_points)
+    matched = []
+
+    def stand_in(source, target, spacing, spacings):
+        matched.append(len(source))
+        lost = len(source) <= registration.CHECK_MAX_POINTS
+        return (euler_to_matrix([90.0, 0.0, 0.0]) if lost else TRUE_ROTATION), TRUE_TRANSLATION
+
+    monkeypatch.setattr(registration, "feature_match", stand_in)
+    source = real_scans["kitti_000008_fov"]
+    target = apply_transform(source, TRUE_ROTATION, TRUE_TRANSLATION)
+    options, settings, _ = pipeline_inputs(None, None, method="auto")
+    turn = euler_to_matrix([0.0, 90.0, 0.0])  # every draft and model answer far from the truth
+    draft = Network("object", 384, recording([], "draft", turn), "draft")
+    networks = [Network("object", 768, recording([], "model", turn), draft=draft)]
+    result = asyncio.run(register_clouds(source, target, options, settings, networks))
+    subset_size = registration.CHECK_MAX_POINTS
+    if wider_points:
+        assert matched == [subset_size, min(len(source), wider_points)]
+        assert (result.stage, result.verified) == ("features", True)
+        assert rotation_angle_deg(result.rotation, TRUE_ROTATION) < 0.01
+    else:
+        assert matched == [subset_size]
+        assert not (result.verified and rotation_angle_deg(result.rotation, TRUE_ROTATION) < 2.0)
 
 
 def test_feature_matching_that_agrees_with_a_verified_answer_is_not_refined_again(real_scans, monkeypatch):
