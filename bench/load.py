@@ -140,6 +140,18 @@ def rss_mb(pid: int) -> float:
     return total
 
 
+def rss_summary(samples: np.ndarray, slope_from_s: float = 0.0) -> dict[str, float]:
+    """(seconds, MB) samples -> the first, last and largest, and the trend (MB per minute, fitted
+    from `slope_from_s` on)."""
+    trend = samples[samples[:, 0] >= slope_from_s]
+    return {
+        "first": float(samples[0, 1]),
+        "end": float(samples[-1, 1]),
+        "max": float(samples[:, 1].max()),
+        "slope_per_min": float(np.polyfit(trend[:, 0], trend[:, 1], 1)[0] * 60),
+    }
+
+
 class Sampler:
     """The service's RSS and a /ready probe, about once every `interval_s`, on a thread of its own."""
 
@@ -223,7 +235,6 @@ def overload(args) -> int:
                 open_loop(service.url, payloads, rate, args.duration, defaults.request_timeout_s + 30)
             )
         accepted = [o for o in outcomes if o["status"] == "200"]
-        steady = np.array([(t, mb) for t, mb in sampler.rss if t >= 10.0])
         record["overload"] = {
             "capacity_pairs_per_s": capacity,
             "offered_per_s": len(outcomes) / offered_s,
@@ -232,12 +243,7 @@ def overload(args) -> int:
             "accepted_p99_ms": percentile_ms(accepted, "s", 99),
             # Under overload the generator's own pool holds some requests for seconds before they are sent.
             "accepted_p99_on_wire_ms": percentile_ms(accepted, "wire_s", 99),
-            "rss_mb": {
-                "at_10_s": float(steady[0, 1]),
-                "end": float(steady[-1, 1]),
-                "max": float(steady[:, 1].max()),
-                "slope_per_min": float(np.polyfit(steady[:, 0], steady[:, 1], 1)[0] * 60),
-            },
+            "rss_mb": rss_summary(np.array([(t, mb) for t, mb in sampler.rss if t >= 10.0])),  # once started
             "ready_during": dict(sampler.ready),
             "health_after": httpx.get(f"{service.url}/health", timeout=10, trust_env=False).json(),
         }
@@ -276,16 +282,10 @@ def soak(args) -> int:
         inside = (rss[:, 0] >= 60 * minute) & (rss[:, 0] < 60 * (minute + 1))
         answered = [o for o in outcomes if 60 * minute <= o["at"] - started < 60 * (minute + 1)]
         minutes.append({"rss_mb_max": float(rss[inside, 1].max()), **summary(answered, 60.0)})
-    second_half = rss[rss[:, 0] >= rss[-1, 0] / 2]
     record["soak"] = {
         "seconds": seconds,
         **summary(outcomes, seconds),
-        "rss_mb": {
-            "first": float(rss[0, 1]),
-            "end": float(rss[-1, 1]),
-            "max": float(rss[:, 1].max()),
-            "slope_per_min_second_half": float(np.polyfit(second_half[:, 0], second_half[:, 1], 1)[0] * 60),
-        },
+        "rss_mb": rss_summary(rss, slope_from_s=rss[-1, 0] / 2),
         "ready_during": dict(sampler.ready),
         "feature_matching_replaced": sum(
             float(line.split()[-1]) for line in metrics.splitlines() if line.startswith(REPLACED)

@@ -125,7 +125,7 @@ def overload(record: dict) -> list[str]:
         ],
         [
             "RSS MB of all its processes at 10 s, end, max; slope MB/min",
-            "{at_10_s:.0f}, {end:.0f}, {max:.0f}; {slope_per_min:+.1f}".format(**o["rss_mb"]),
+            "{first:.0f}, {end:.0f}, {max:.0f}; {slope_per_min:+.1f}".format(**o["rss_mb"]),
         ],
         ["/ready during overload", o["ready_during"]],
         [
@@ -160,7 +160,7 @@ def soak(record: dict) -> list[str]:
     summary = [
         [
             "RSS MB first, end, max; slope over the second half MB/min",
-            "{first:.0f}, {end:.0f}, {max:.0f}; {slope_per_min_second_half:+.1f}".format(**k["rss_mb"]),
+            "{first:.0f}, {end:.0f}, {max:.0f}; {slope_per_min:+.1f}".format(**k["rss_mb"]),
         ],
         ["feature matching processes replaced (IFNET_FEATURE_MATCHING_MAX_MB)", k["feature_matching_replaced"]],
         ["answers; p50 / p99 ms", f"{cell(k['statuses'])}; {k['p50_ms']:,.0f} / {k['p99_ms']:,.0f}"],
