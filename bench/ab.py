@@ -1,5 +1,6 @@
-"""Variants of `auto`'s pipeline on the same pairs in one process, interleaved pair by pair: the A/B
-behind a change to one of the pipeline's constants or settings, before and after.
+"""Variants of `auto`'s pipeline (or `global`'s, with --method) on the same pairs in one process,
+interleaved pair by pair: the A/B behind a change to one of the pipeline's constants or settings,
+before and after.
 
     python -m bench.ab --sets indoor truth same:jitter:so3:100 \
         --variant 'look=service.registration.SLIDE_GUESS_SHARE=-1' --variant spare=
@@ -107,7 +108,7 @@ def run(args: argparse.Namespace) -> dict:
     variants = [parse_variant(spec) for spec in args.variant]
     base = Settings()
     loaded: dict[tuple, list[Network]] = {}  # per model files: a variant may serve another repository
-    options = RegistrationOptions(method="auto", refine=RefineOptions())
+    options = RegistrationOptions(method=args.method, refine=RefineOptions())
 
     def answer(pair: harness.Pair, patches: list) -> dict:
         with patched(patches, base) as settings:
@@ -131,7 +132,7 @@ def run(args: argparse.Namespace) -> dict:
             "rotation": np.asarray(result.rotation).tolist(),
         }
 
-    record = harness.run_header() | {"variants": args.variant, "seed": args.seed, "sets": {}}
+    record = harness.run_header() | {"variants": args.variant, "method": args.method, "seed": args.seed, "sets": {}}
     first = variants[0][0]
     for spec in args.sets:
         pairs = harness.pair_set(spec, seed=args.seed)
@@ -185,6 +186,7 @@ def main(argv: list[str] | None = None) -> None:
         "--variant", action="append", required=True, help="NAME= or NAME=TARGET=VALUE[;...]; the first is the base"
     )
     p.add_argument("--seed", type=int, default=0, help="the sets' seed: other seeds give other pairs")
+    p.add_argument("--method", choices=["auto", "global"], default="auto", help="the requests' method")
     p.add_argument("--out", type=Path, help="write the record (every pair's answers) here as JSON")
     args = p.parse_args(argv)
     if len(args.variant) < 2:

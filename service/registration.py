@@ -785,14 +785,9 @@ async def _answer(
             # Feature matching's answer before the models': they follow only where it fails the check.
             if features_answer is None:
                 features_answer = await run_blocking(_finish_features, base, features, first.model, options)
-            if not features_answer.verified and _thinned(base) and WIDER_FEATURE_POINTS > CHECK_MAX_POINTS:
-                wider = await run_blocking(_feature_guess, base, match, WIDER_FEATURE_POINTS)
-                wider_answer = await run_blocking(_finish_features, base, wider, first.model, options)
-                if wider_answer.verified:
-                    discarded.append(features_answer.timings_ms)
-                    features, features_answer = wider, wider_answer
-                else:
-                    discarded.append(wider_answer.timings_ms)
+            features, features_answer = await _matched_wider(
+                base, features, features_answer, match, options, run_blocking, discarded
+            )
             if features_answer.verified:
                 asked = []
         for network in asked:
@@ -811,7 +806,10 @@ async def _answer(
         # It agrees with the verified answer: nothing to refine or judge. Its time still counts.
         settled[0].timings_ms["postprocess_ms"] += features.seconds * 1000.0
     else:
-        answers.append(await run_blocking(_finish_features, base, features, first.model, options))
+        answer = await run_blocking(_finish_features, base, features, first.model, options)
+        if not settled and options.method != "ifnet":  # else a second opinion: only a search tries harder
+            features, answer = await _matched_wider(base, features, answer, match, options, run_blocking, discarded)
+        answers.append(answer)
     # The rotated starts search for an answer where none is verified and, past `ifnet`, judge the
     # verified ones: on a symmetric shape a network or feature matching may fit a flipped pose as
     # well as the right one. Under `auto` an unpinned answer matching most of the source ends the search,
@@ -826,6 +824,29 @@ async def _answer(
             await _polish(base, answers, discarded, options, run_blocking)
     # `ifnet` answers with the network, whatever else fits; the other stages only judge it.
     return _given_and_charged(answers, options.method, discarded), features
+
+
+async def _matched_wider(
+    prepared: _Prepared,
+    features: _FeatureGuess,
+    answer: RegistrationResult,
+    match: FeatureMatch | None,
+    options: RegistrationOptions,
+    run_blocking: RunBlocking,
+    discarded: list[dict[str, float]],
+) -> tuple[_FeatureGuess, RegistrationResult]:
+    """Feature matching's guess and its `answer` or, where that fails the check on a thinned cloud
+    (the matcher saw the check's subset), the guess of a second match on up to WIDER_FEATURE_POINTS
+    of each cloud and its answer, if verified. The answer set aside goes to `discarded`."""
+    if answer.verified or not _thinned(prepared) or WIDER_FEATURE_POINTS <= CHECK_MAX_POINTS:
+        return features, answer
+    wider = await run_blocking(_feature_guess, prepared, match, WIDER_FEATURE_POINTS)
+    wider_answer = await run_blocking(_finish_features, prepared, wider, answer.model, options)
+    if not wider_answer.verified:
+        discarded.append(wider_answer.timings_ms)
+        return features, answer
+    discarded.append(answer.timings_ms)
+    return wider, wider_answer
 
 
 def _fitting_clearly_better(

@@ -62,7 +62,7 @@ def test_two_variants_meet_the_same_pairs(tmp_path):
     assert set(summary) == {"now", "look"} and record["sets"]["same:clean:2"]["pairs"] == 2
     for numbers in summary.values():
         assert (numbers["right"], numbers["wrong_verified"]) == (2, 0) and numbers["total_ms"] > 0
-    assert summary["now"]["ratio_to_first"] == 1.0
+    assert summary["now"]["ratio_to_first"] == 1.0 and record["method"] == "auto"
 
 
 def test_a_set_name_says_which_pairs_and_how_many():

@@ -540,11 +540,14 @@ def test_feature_matching_finds_the_motion_of_two_samples_of_a_large_scan(real_s
     assert rotation_angle_deg(guess.rotation, TRUE_ROTATION) < 2.0
 
 
+@pytest.mark.parametrize("method", ["auto", "global"])
 @pytest.mark.parametrize("wider_points", [20_000, 0], ids=["wider", "once"])
-def test_feature_matching_lost_on_the_checks_subset_matches_again_on_more_points(real_scans, monkeypatch, wider_points):
-    """Under `auto`, where feature matching's answer on the check's subset of a large scan fails the
-    check, it matches once more on up to WIDER_FEATURE_POINTS of each cloud (a stand-in here, lost on
-    the subset and right on more points), and that answer, verified, is the request's."""
+def test_feature_matching_lost_on_the_checks_subset_matches_again_on_more_points(
+    real_scans, monkeypatch, wider_points, method
+):
+    """Under `auto` and `global`, where feature matching's answer on the check's subset of a large scan
+    fails the check, it matches once more on up to WIDER_FEATURE_POINTS of each cloud (a stand-in here,
+    lost on the subset and right on more points), and that answer, verified, is the request's."""
     from service import registration
 
     monkeypatch.setattr(registration, "WIDER_FEATURE_POINTS", wider_points)
@@ -558,7 +561,7 @@ def test_feature_matching_lost_on_the_checks_subset_matches_again_on_more_points
     monkeypatch.setattr(registration, "feature_match", stand_in)
     source = real_scans["kitti_000008_fov"]
     target = apply_transform(source, TRUE_ROTATION, TRUE_TRANSLATION)
-    options, settings, _ = pipeline_inputs(None, None, method="auto")
+    options, settings, _ = pipeline_inputs(None, None, method=method)
     turn = euler_to_matrix([0.0, 90.0, 0.0])  # every draft and model answer far from the truth
     draft = Network("object", 384, recording([], "draft", turn), "draft")
     networks = [Network("object", 768, recording([], "model", turn), draft=draft)]
