@@ -152,6 +152,7 @@ SLIDE_ITERATIONS = 10  # per pass of a probe: on SLIDE_POINTS points GICP often 
 SLIDE_GUESS_SHARE = 0.01
 RIVAL_FITNESS_MARGIN = 0.05  # an unverified answer fitting within this of a verified one also contradicts it
 RIVAL_RMSE_SHARE = 0.8  # a verified answer this much tighter than a verified rival, and fitting as well, outranks it
+HALF_TURNS_JUDGE_SCANS = True  # under `auto`, on clouds thinned for the check (see _answer)
 # A start's answer, refined from up to 63 degrees away, can settle in a local minimum that passes the check
 # beside the truth: the answers of these stages are also refined from turns of POLISH_DEG about them.
 POLISHED_STAGES = ("multistart",)
@@ -816,7 +817,14 @@ async def _answer(
     # and a start's unverified answer replaces an unpinned one only where it fits clearly better.
     if options.method != "ifnet":
         verified = [answer for answer in answers if answer.verified]
-        if verified or not (auto and any(_settled_unpinned(answer) for answer in answers)):
+        if auto and HALF_TURNS_JUDGE_SCANS and _thinned(base) and [a.stage for a in verified] == ["features"]:
+            # A scan too large for the check whole: feature matching's answer alone is verified. Its half
+            # turns judge a scene's flip at a fraction of the starts' cost (24 calls, refinements on
+            # thousands of points), whose network answers on a scene land far from anything that fits.
+            found, cost = await run_blocking(_half_turns, base, verified[0], first.model, options)
+            answers += found
+            discarded.append(cost)
+        elif verified or not (auto and any(_settled_unpinned(answer) for answer in answers)):
             anyway = STARTS_JUDGING_ANYWAY if _corroborated(verified, features) else UNCORROBORATED_JUDGING_ANYWAY
             found, cost = await _judged_by_starts(base, first, verified, options, run_blocking, anyway)
             answers += _fitting_clearly_better(found, answers) if auto and not verified else found

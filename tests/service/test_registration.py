@@ -221,18 +221,24 @@ def test_auto_asks_the_draft_first_and_keeps_its_answer_only_where_feature_match
     assert asked == [("model", 768)] and (network.stage, network.refinement) == ("ifnet", None)
 
 
-def test_where_the_draft_fails_a_verified_guess_spares_the_models(real_scans):
+@pytest.mark.parametrize("points", [None, 6_000], ids=["thinned scan", "whole"])
+def test_where_the_draft_fails_a_verified_guess_spares_the_models(real_scans, points):
     """`auto` past an unconfirmed draft: feature matching's answer, refined and verified, is judged
-    by the rotated starts, and no model is asked."""
+    by the rotated starts or, on a scan thinned for the check, by its half turns, and no model is
+    asked."""
+    from service import registration
+
     asked = []
     source = real_scans["kitti_000008_fov"]
+    source = source if points is None else subset(source, points)
     target = apply_transform(source, TRUE_ROTATION, TRUE_TRANSLATION)
     options, settings, _ = pipeline_inputs(None, None, method="auto")
     turn = euler_to_matrix([90.0, 0.0, 0.0])  # every draft answer far from the (right) guess
     draft = Network("object", 384, recording(asked, "draft", turn), "draft")
     networks = [Network("object", 768, recording(asked, "model"), draft=draft)]
     result = asyncio.run(register_clouds(source, target, options, settings, networks))
-    starts = [("draft", STARTS_POINTS)] * 24
+    thinned = len(source) > registration.CHECK_MAX_POINTS
+    starts = [] if thinned else [("draft", STARTS_POINTS)] * 24
     assert asked == [("draft", 384), ("draft", 384), *starts]  # as it lies, at the guess's turn, the starts
     assert (result.stage, result.verified) == ("features", True)
     assert rotation_angle_deg(result.rotation, TRUE_ROTATION) < 0.01
