@@ -6,6 +6,7 @@
         --request 'indoor={"model": "indoor", "method": "ifnet"}'           # the paper's scene protocols
     python -m bench.compare peers --request auto='{"method": "auto", "refine": true}'   # one more service row
     python -m bench.compare peers --setting two-calls=model_calls=2   # each service row again on another server
+    python -m bench.compare peers --modelnet --no-truth-pairs --seed 0-19    # 20 views of each real scan
     python -m bench.compare models service/models/object.onnx /tmp/new.onnx    # ONNX files: time and accuracy
     python -m bench.compare models service/models/object.onnx service/models/drafts/object.onnx --refine \
         --sets same:clean same:jitter same:outliers unseen:clean                # and after refinement
@@ -17,10 +18,12 @@ machine's speed drifts.
 
 import argparse
 import contextlib
+import dataclasses
 import json
 import statistics
 import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import httpx
@@ -163,16 +166,45 @@ def run_set(methods: Methods, pairs: list[harness.Pair], rotation_start: int) ->
     return rows
 
 
+def seeds(text: str) -> list[int]:
+    """ "3", "0-19" or "0,3,5" -> the seeds."""
+    found = []
+    for part in text.split(","):
+        first, dash, last = part.partition("-")
+        try:
+            found += list(range(int(first), int(last) + 1)) if dash else [int(first)]
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"{text!r}: give a seed (3), a range (0-19) or a list (0,3,5)") from None
+    if not found:
+        raise argparse.ArgumentTypeError(f"{text!r}: the range holds no seed")
+    return found
+
+
+def seeded(args, build: Callable[..., list[harness.Pair]], *arguments, **options) -> list[harness.Pair]:
+    """build(*arguments, seed=S, **options)'s pairs for every seed S of the run, named with their seed
+    where there are several."""
+    many = len(args.seed) > 1
+    return [
+        dataclasses.replace(pair, name=f"{pair.name} seed {seed}") if many else pair
+        for seed in args.seed
+        for pair in build(*arguments, seed=seed, **options)
+    ]
+
+
+def scan_pairs(names: list[str], max_angle_deg: float, seed: int) -> list[harness.Pair]:
+    return [harness.scan_pair(name, seed, max_angle_deg=max_angle_deg) for name in names]
+
+
 def peers(args) -> int:
     sets: dict[str, list[harness.Pair]] = {}
     for spec in args.modelnet:
-        sets[f"ModelNet {spec}"] = harness.pair_set(spec, args.modelnet_pairs, args.seed)
+        sets[f"ModelNet {spec}"] = seeded(args, harness.pair_set, spec, args.modelnet_pairs)
     for spec in args.scenes:
         domain, _, shared = spec.partition(":")
         label = f"{domain} scenes" + (", shared points" if shared else "")
-        sets[label] = harness.pair_set(spec, seed=args.seed, per_scan=args.scene_pairs)
+        sets[label] = seeded(args, harness.pair_set, spec, per_scan=args.scene_pairs)
     if args.scans:
-        sets["real scans"] = [harness.scan_pair(spec, args.seed, max_angle_deg=args.scan_angle) for spec in args.scans]
+        sets["real scans"] = seeded(args, scan_pairs, args.scans, args.scan_angle)
     if args.truth_pairs:
         sets["real pairs with ground truth"] = harness.truth_pairs()
     settings = harness.parse_settings(args.setting)
@@ -194,6 +226,7 @@ def peers(args) -> int:
             "requests": {name: options for name, (_, options) in methods.requests.items() if "@" not in name},
             "settings": settings,
             "scan_angle_deg": args.scan_angle,
+            "seeds": args.seed,
         }
         record["right"] = {
             "rotation_deg": harness.RIGHT_ROTATION_DEG,
@@ -293,7 +326,9 @@ def main(argv: list[str] | None = None) -> int:
         help="NAME=KEY=VALUE[,KEY=VALUE]: IFNET_* of one more server, asked every request too (rows REQUEST@NAME)",
     )
     p.add_argument("--tight-max-points", type=int, default=5000, help="open3d-tight only on pairs this small")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument(
+        "--seed", type=seeds, default=[0], help="the pairs' seed, or several (0-19, 0,3,5): a set holds every seed's"
+    )
     p.add_argument("--out", type=Path, default=harness.RESULTS / "compare.json")
     m = commands.add_parser("models", help="ONNX files' calls interleaved on the same pairs: time and accuracy")
     m.add_argument("models", type=Path, nargs="+")

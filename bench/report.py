@@ -93,6 +93,11 @@ def settings(record: dict) -> list[str]:
     return compare(record, "Service settings: the same requests on servers with other IFNET_* settings")
 
 
+def scan_views(record: dict) -> list[str]:
+    seeds = record["seeds"]
+    return compare(record, f"Real scans: views from {len(seeds)} seeds ({seeds[0]}-{seeds[-1]})")
+
+
 def symmetric(record: dict) -> list[str]:
     return compare(record, "Any rotation, 100 pairs per set: symmetric shapes")
 
@@ -172,6 +177,7 @@ def soak(record: dict) -> list[str]:
 RENDER = {
     "compare": compare,
     "symmetric": symmetric,
+    "scan-views": scan_views,
     "scenes": scenes,
     "settings": settings,
     "scaling": scaling,
