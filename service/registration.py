@@ -824,6 +824,7 @@ async def _answer(
             found, cost = await run_blocking(_half_turns, base, verified[0], first.model, options)
             answers += found
             discarded.append(cost)
+            await _polish(base, answers, discarded, options, run_blocking)
         elif verified or not (auto and any(_settled_unpinned(answer) for answer in answers)):
             anyway = STARTS_JUDGING_ANYWAY if _corroborated(verified, features) else UNCORROBORATED_JUDGING_ANYWAY
             found, cost = await _judged_by_starts(base, first, verified, options, run_blocking, anyway)
