@@ -11,11 +11,11 @@ module's constant (`service.registration.SLIDE_GUESS_SHARE`) or `settings.FIELD`
 JSON; `settings.model_repository` runs the variant on another repository's models and drafts.
 Sets as bench.harness.pair_set names them: ModelNet `split:noise[:so3][:count]` (25 pairs unless
 counted), `indoor`, `outdoor` (`:shared` for the paper's pairs), `truth` (the real pairs with
-ground truth), `scans` (views of real scans). Every model of the repository and its draft answers
-in process, as the service's `auto` asks them, with `refine`; the variants take turns first from
-pair to pair. Per set: right, verified and wrong-and-verified counts, median and total time, the
-median of the per-pair time ratios to the first variant, and every pair whose verdict, rightness
-or answer differs from the first variant's.
+ground truth), `scans` (views of real scans; `scans:N`, of every scan over N points). Every
+model of the repository and its draft answers in process, as the service's `auto` asks them,
+with `refine`; the variants take turns first from pair to pair. Per set: right, verified and
+wrong-and-verified counts, median and total time, the median of the per-pair time ratios to the
+first variant, and every pair whose verdict, rightness or answer differs from the first variant's.
 """
 
 import argparse

@@ -285,6 +285,7 @@ def truth_pairs() -> list[Pair]:
 
 
 # Real scans of the shared data whose two overlapping views (scan_pair) make the benchmarks' `scans` set.
+SCAN_ARCHIVES = ("real_scans", "lidar_scans", "indoor_scans")
 DEFAULT_SCANS = (
     "real_scans/pcl_office1",
     "real_scans/pcl_table_scene_mug",
@@ -295,17 +296,28 @@ DEFAULT_SCANS = (
 )
 
 
+def scans_over(points: int) -> list[str]:
+    """archive/name of every scan of the shared data's scan archives with more than `points` points."""
+    names = []
+    for archive in SCAN_ARCHIVES:
+        with np.load(DATA / f"{archive}.npz") as data:
+            names += [f"{archive}/{name}" for name in data.files if data[name].ndim == 2 and len(data[name]) > points]
+    return names
+
+
 def pair_set(spec: str, count: int = 25, seed: int = 0, per_scan: int = 1) -> list[Pair]:
     """The pairs a set name stands for: ModelNet `split:noise[:so3][:count]` (`count` pairs unless the
     name counts them), `indoor` or `outdoor` (`:shared` for the paper's pairs; `per_scan` pairs per
-    held-out scan), `truth` (the real pairs with ground truth), `scans` (DEFAULT_SCANS' views)."""
+    held-out scan), `truth` (the real pairs with ground truth), `scans` (DEFAULT_SCANS' views),
+    `scans:N` (a view of every scan of the shared data with more than N points)."""
     parts = spec.split(":")
     if parts[0] in ("indoor", "outdoor"):
         return scene_pairs(parts[0], per_scan, seed=seed, shared=parts[1:] == ["shared"])
     if spec == "truth":
         return truth_pairs()
-    if spec == "scans":
-        return [scan_pair(name, seed) for name in DEFAULT_SCANS]
+    if parts[0] == "scans":
+        names = DEFAULT_SCANS if len(parts) == 1 else scans_over(int(parts[1]))
+        return [scan_pair(name, seed) for name in names]
     if parts[-1].isdigit():
         count = int(parts.pop())
     split, noise, *rest = parts

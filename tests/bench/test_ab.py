@@ -73,6 +73,8 @@ def test_a_set_name_says_which_pairs_and_how_many():
     counted, rotated = harness.pair_set("same:clean:3", count=7), harness.pair_set("unseen:jitter:so3", count=2)
     assert len(counted) == 3 and all(pair.name.startswith("same-clean/") for pair in counted)
     assert len(rotated) == 2 and all(pair.name.startswith("unseen-jitter-so3/") for pair in rotated)
+    large = harness.pair_set("scans:200000")  # a view of every scan of the shared data over 200,000 points
+    assert sorted(pair.name for pair in large) == ["real_scans/pcl_office1", "real_scans/pcl_table_scene_mug"]
     reseeded = harness.pair_set("unseen:jitter:so3", count=2, seed=1)  # the same shapes, other motions
     assert [pair.name for pair in reseeded] == [pair.name for pair in rotated]
     assert not any(np.allclose(a.rotation, b.rotation) for a, b in zip(reseeded, rotated, strict=True))
