@@ -438,25 +438,31 @@ class _FeatureGuess:
     rotation: np.ndarray
     translation: np.ndarray
     seconds: float
+    spacing: float  # the point spacing the matcher's voxel followed
 
 
-def _feature_guess(prepared: _Prepared, match: FeatureMatch | None = None, points: int = 0) -> _FeatureGuess:
+def _feature_guess(
+    prepared: _Prepared, match: FeatureMatch | None = None, points: int = 0, spacing: float | None = None
+) -> _FeatureGuess:
     """Feature matching (KISS-Matcher, or `match` with feature_match's signature), whatever the
     rotation, on the check's clouds or, where they are subsets, on up to `points` of each cloud: a
-    coarse answer."""
+    coarse answer. `spacing`: the thinned clouds' point spacing, where an earlier guess measured it."""
     started = time.perf_counter()
     check = prepared.check
-    clouds, spacing, spacings = (check.source, check.target), check.spacing, FEATURE_VOXEL_SPACINGS
-    if _thinned(prepared):
-        spacing = max(
-            point_spacing(subset(cloud, FEATURE_SPACING_POINTS), threads=check.threads)
-            for cloud in (prepared.source, prepared.target)
-        )
+    clouds, spacings = (check.source, check.target), FEATURE_VOXEL_SPACINGS
+    if not _thinned(prepared):
+        spacing = check.spacing
+    else:
+        if spacing is None:
+            spacing = max(
+                point_spacing(subset(cloud, FEATURE_SPACING_POINTS), threads=check.threads)
+                for cloud in (prepared.source, prepared.target)
+            )
         spacings = THINNED_FEATURE_SPACINGS
         if points:
             clouds = (subset(prepared.source, points), subset(prepared.target, points))
     rotation, translation = (match or feature_match)(*clouds, spacing, spacings)
-    return _FeatureGuess(rotation, translation, time.perf_counter() - started)
+    return _FeatureGuess(rotation, translation, time.perf_counter() - started, spacing)
 
 
 def _thinned(prepared: _Prepared) -> bool:
@@ -850,7 +856,7 @@ async def _matched_wider(
     of each cloud and its answer, if verified. The answer set aside goes to `discarded`."""
     if answer.verified or not _thinned(prepared) or WIDER_FEATURE_POINTS <= CHECK_MAX_POINTS:
         return features, answer
-    wider = await run_blocking(_feature_guess, prepared, match, WIDER_FEATURE_POINTS)
+    wider = await run_blocking(_feature_guess, prepared, match, WIDER_FEATURE_POINTS, features.spacing)
     wider_answer = await run_blocking(_finish_features, prepared, wider, answer.model, options)
     if not wider_answer.verified:
         discarded.append(wider_answer.timings_ms)

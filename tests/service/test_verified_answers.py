@@ -605,7 +605,7 @@ def test_feature_matching_landing_on_an_answer_it_did_not_start_spares_the_look_
         turned = turn @ answer.rotation
         # the source's centre `share` of the extent from where the answer puts it
         moved = answer.rotation @ centre + answer.translation + np.array([share * extent, 0.0, 0.0])
-        return registration._FeatureGuess(turned, moved - turned @ centre, 0.01)
+        return registration._FeatureGuess(turned, moved - turned @ centre, 0.01, prepared.check.spacing)
 
     probed = small_refinements(monkeypatch)
     assert registration._unless_slid(prepared, answer, options, guess(0.005)) is answer
