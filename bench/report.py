@@ -95,7 +95,8 @@ def settings(record: dict) -> list[str]:
 
 def scan_views(record: dict) -> list[str]:
     seeds = record["seeds"]
-    return compare(record, f"Real scans: views from {len(seeds)} seeds ({seeds[0]}-{seeds[-1]})")
+    named = f"{seeds[0]}-{seeds[-1]}" if seeds == list(range(seeds[0], seeds[-1] + 1)) else ", ".join(map(str, seeds))
+    return compare(record, f"Real scans: views from {len(seeds)} seeds ({named})")
 
 
 def symmetric(record: dict) -> list[str]:
