@@ -180,13 +180,12 @@ def seeds(text: str) -> list[int]:
     return found
 
 
-def seeded(args, build: Callable[..., list[harness.Pair]], *arguments, **options) -> list[harness.Pair]:
-    """build(*arguments, seed=S, **options)'s pairs for every seed S of the run, named with their seed
-    where there are several."""
-    many = len(args.seed) > 1
+def seeded(seeds: list[int], build: Callable[..., list[harness.Pair]], *arguments, **options) -> list[harness.Pair]:
+    """build(*arguments, seed=S, **options)'s pairs for every seed S, named with their seed where
+    there are several."""
     return [
-        dataclasses.replace(pair, name=f"{pair.name} seed {seed}") if many else pair
-        for seed in args.seed
+        dataclasses.replace(pair, name=f"{pair.name} seed {seed}") if len(seeds) > 1 else pair
+        for seed in seeds
         for pair in build(*arguments, seed=seed, **options)
     ]
 
@@ -198,13 +197,13 @@ def scan_pairs(names: list[str], max_angle_deg: float, seed: int) -> list[harnes
 def peers(args) -> int:
     sets: dict[str, list[harness.Pair]] = {}
     for spec in args.modelnet:
-        sets[f"ModelNet {spec}"] = seeded(args, harness.pair_set, spec, args.modelnet_pairs)
+        sets[f"ModelNet {spec}"] = seeded(args.seed, harness.pair_set, spec, args.modelnet_pairs)
     for spec in args.scenes:
         domain, _, shared = spec.partition(":")
         label = f"{domain} scenes" + (", shared points" if shared else "")
-        sets[label] = seeded(args, harness.pair_set, spec, per_scan=args.scene_pairs)
+        sets[label] = seeded(args.seed, harness.pair_set, spec, per_scan=args.scene_pairs)
     if args.scans:
-        sets["real scans"] = seeded(args, scan_pairs, args.scans, args.scan_angle)
+        sets["real scans"] = seeded(args.seed, scan_pairs, args.scans, args.scan_angle)
     if args.truth_pairs:
         sets["real pairs with ground truth"] = harness.truth_pairs()
     settings = harness.parse_settings(args.setting)

@@ -22,8 +22,8 @@ def test_several_seeds_make_one_set_of_every_seeds_pairs_named_apart():
     def build(names, seed):
         return [Pair(name, np.zeros((3, 3)) + seed, np.zeros((3, 3)), np.eye(3), np.zeros(3), 0.05) for name in names]
 
-    one = compare.seeded(argparse.Namespace(seed=[4]), build, ["a", "b"])
+    one = compare.seeded([4], build, ["a", "b"])
     assert [pair.name for pair in one] == ["a", "b"] and one[0].source[0, 0] == 4
-    several = compare.seeded(argparse.Namespace(seed=[0, 1]), build, ["a", "b"])
+    several = compare.seeded([0, 1], build, ["a", "b"])
     assert [pair.name for pair in several] == ["a seed 0", "b seed 0", "a seed 1", "b seed 1"]
     assert [pair.source[0, 0] for pair in several] == [0, 0, 1, 1]
