@@ -116,6 +116,11 @@ STARTS_POINTS = 384
 # Their answers (and the half turns') are verified only where they match at least this of the source
 # both ways: of many turns tried, one that fits a third of a partial scan may be wrong.
 MIN_STARTS_FITNESS = 0.4
+# Where the coarse pass runs on a subset of the check's clouds, a start's or half turn's answer that fits
+# under half of MIN_STARTS_FITNESS after it skips the fine pass: far off, each fine iteration searched
+# 8,000 points' neighbours far from any surface (up to 0.8 s an answer on a tabletop), and on real
+# scans the fine pass lifted no such answer's fitness by more than 0.1.
+FINE_PASS_MIN_FITNESS = 0.5 * MIN_STARTS_FITNESS
 AGREEMENT_DEG = 5.0  # two fitting answers further apart than this contradict each other
 # An unpinned answer whose translation puts the source's centre further than this share of the extent
 # from where feature matching's guess puts it may have slid off the truth: the guess's turn alone
@@ -359,12 +364,18 @@ def refine_distances(spacing: float, scale: float, max_distance: float | None = 
 
 
 def _checked(
-    prepared: _Prepared, rotation: np.ndarray, translation: np.ndarray, refine_options, min_fitness: float = MIN_FITNESS
+    prepared: _Prepared,
+    rotation: np.ndarray,
+    translation: np.ndarray,
+    refine_options,
+    min_fitness: float = MIN_FITNESS,
+    fine_bar: float = 0.0,
 ) -> _Candidate:
     """Refine (when asked) and check one answer (its fit at least `min_fitness` both ways). Without a
     distance of the user's, the refinement runs coarse to fine: first at a share of the clouds' size
     on fewer points (to pull in a few degrees' error), then at a few point spacings (to settle on
-    the surfaces)."""
+    the surfaces). Where the coarse pass ran on fewer points than the check's, the fine pass is
+    skipped for an answer then fitting under `fine_bar` of the scoring points."""
     refinement = None
     if refine_options is not None:
         network_transform = to_matrix(rotation, translation)
@@ -372,6 +383,13 @@ def _checked(
         iterations = 0
         for stage, distance in enumerate(distances, start=1):
             clouds = prepared.check if stage == len(distances) else prepared.coarse
+            if (
+                fine_bar > 0
+                and stage > 1
+                and prepared.coarse is not prepared.check
+                and prepared.check.fitness(prepared.scored, rotation, translation, INLIER_SPACINGS) < fine_bar
+            ):
+                break
             rotation, translation, steps = clouds.refine(
                 rotation,
                 translation,
@@ -380,7 +398,8 @@ def _checked(
                 max_seconds=REFINE_MAX_SECONDS,
             )
             iterations += steps
-        refinement = RefineReport(distances[-1], iterations, network_transform)
+            used = distance
+        refinement = RefineReport(used, iterations, network_transform)
     return _Candidate(rotation, translation, refinement, prepared.check.verify(rotation, translation, min_fitness))
 
 
@@ -528,7 +547,7 @@ def _rivals(
     refine_options = options.refine or RefineOptions()  # coarse answers: every candidate is refined
     best = ranked[: max(STARTS_REFINED, anyway)]
     return [
-        _checked(prepared, rotation, translation, refine_options, MIN_STARTS_FITNESS)
+        _checked(prepared, rotation, translation, refine_options, MIN_STARTS_FITNESS, FINE_PASS_MIN_FITNESS)
         for _, rotation, translation in best
     ]
 

@@ -551,6 +551,35 @@ def test_an_answer_of_the_rotated_starts_needs_a_closer_fit(monkeypatch):
     assert not start.verification.verified and "needed" in start.verification.reason
 
 
+def test_a_far_start_on_a_thinned_scan_skips_the_fine_pass(monkeypatch):
+    """On clouds thinned for the check, a start's answer that still fits under FINE_PASS_MIN_FITNESS
+    after the coarse pass is checked without the fine pass on the check's 8,000 points; the right
+    pose gets both passes."""
+    from model.geometry import AlignmentClouds
+    from service import registration
+
+    rng = np.random.default_rng(0)
+    scene = stepped_wall(rng, 24_000)
+    rotation, translation = euler_to_matrix([5.0, 3.0, -4.0]), np.array([0.2, -0.1, 0.05])
+    prepared, options = prepared_pair(scene, apply_transform(stepped_wall(rng, 24_000), rotation, translation))
+    assert prepared.coarse is not prepared.check  # thinned: the coarse pass runs on fewer points
+    passes, refine = [], AlignmentClouds.refine
+    monkeypatch.setattr(
+        AlignmentClouds, "refine", lambda clouds, *args, **kw: passes.append(clouds) or refine(clouds, *args, **kw)
+    )
+    far = euler_to_matrix([150.0, 40.0, -70.0]) @ rotation
+
+    def refined_on(pose) -> list[str]:
+        passes.clear()
+        registration._rivals(prepared, [pose], options, [])
+        return ["check" if clouds is prepared.check else "coarse" for clouds in passes]
+
+    assert refined_on((far, translation)) == ["coarse"]
+    assert refined_on((rotation, translation)) == ["coarse", "check", "check"]  # the check refines once more
+    monkeypatch.setattr(registration, "FINE_PASS_MIN_FITNESS", 0.0)
+    assert refined_on((far, translation))[:2] == ["coarse", "check"]
+
+
 def test_probes_that_come_back_to_the_answer_stop_after_their_coarse_pass(monkeypatch):
     """Beside a right answer most probes' coarse pass leads back to it: their fine pass, which would
     settle them there, is skipped, and every pass of a probe stops at SLIDE_ITERATIONS."""
