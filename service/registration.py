@@ -158,7 +158,6 @@ SLIDE_GUESS_SHARE = 0.01
 RIVAL_FITNESS_MARGIN = 0.05  # an unverified answer fitting within this of a verified one also contradicts it
 RIVAL_RMSE_SHARE = 0.8  # a verified answer this much tighter than a verified rival, and fitting as well, outranks it
 CONFIRMING_BETTER_FIT = 0.05  # feature matching's refined answer fitting this much better confirms nothing
-HALF_TURNS_JUDGE_SCANS = True  # under `auto`, on clouds thinned for the check (see _answer)
 # A start's answer, refined from up to 63 degrees away, can settle in a local minimum that passes the check
 # beside the truth: the answers of these stages are also refined from turns of POLISH_DEG about them.
 POLISHED_STAGES = ("multistart",)
@@ -843,7 +842,7 @@ async def _answer(
     # and a start's unverified answer replaces an unpinned one only where it fits clearly better.
     if options.method != "ifnet":
         verified = [answer for answer in answers if answer.verified]
-        if auto and HALF_TURNS_JUDGE_SCANS and _thinned(base) and [a.stage for a in verified] == ["features"]:
+        if auto and _thinned(base) and [a.stage for a in verified] == ["features"]:
             # A scan too large for the check whole: feature matching's answer alone is verified. Its half
             # turns judge a scene's flip at a fraction of the starts' cost (24 calls, refinements on
             # thousands of points), whose network answers on a scene land far from anything that fits.
