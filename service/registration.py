@@ -116,11 +116,12 @@ STARTS_POINTS = 384
 # Their answers (and the half turns') are verified only where they match at least this of the source
 # both ways: of many turns tried, one that fits a third of a partial scan may be wrong.
 MIN_STARTS_FITNESS = 0.4
-# Where the coarse pass runs on a subset of the check's clouds, a start's or half turn's answer that fits
-# under half of MIN_STARTS_FITNESS after it skips the fine pass: far off, each fine iteration searched
-# 8,000 points' neighbours far from any surface (up to 0.8 s an answer on a tabletop), and on real
-# scans the fine pass lifted no such answer's fitness by more than 0.1.
-FINE_PASS_MIN_FITNESS = 0.5 * MIN_STARTS_FITNESS
+# Where the coarse pass runs on a subset of the check's clouds and nothing is verified yet, a start's
+# answer matching under this share of the source at LOOSE_SPACINGS after it skips the fine pass: far
+# off, each fine iteration searched 8,000 points' neighbours far from any surface (up to 0.8 s an
+# answer on a tabletop). Of real-scan truths turned 3-40 deg (bench.fine_pass), none that ended right
+# and verified had matched under 0.24 there (at INLIER_SPACINGS, some under 0.1).
+FINE_PASS_MIN_FITNESS = 0.2
 AGREEMENT_DEG = 5.0  # two fitting answers further apart than this contradict each other
 # An unpinned answer whose translation puts the source's centre further than this share of the extent
 # from where feature matching's guess puts it may have slid off the truth: the guess's turn alone
@@ -374,7 +375,7 @@ def _checked(
     distance of the user's, the refinement runs coarse to fine: first at a share of the clouds' size
     on fewer points (to pull in a few degrees' error), then at a few point spacings (to settle on
     the surfaces). Where the coarse pass ran on fewer points than the check's, the fine pass is
-    skipped for an answer then fitting under `fine_bar` of the scoring points."""
+    skipped for an answer then matching under `fine_bar` of the scoring points at LOOSE_SPACINGS."""
     refinement = None
     if refine_options is not None:
         network_transform = to_matrix(rotation, translation)
@@ -386,7 +387,7 @@ def _checked(
                 fine_bar > 0
                 and stage > 1
                 and prepared.coarse is not prepared.check
-                and prepared.check.fitness(prepared.scored, rotation, translation, INLIER_SPACINGS) < fine_bar
+                and prepared.check.fitness(prepared.scored, rotation, translation, LOOSE_SPACINGS) < fine_bar
             ):
                 break
             rotation, translation, steps = clouds.refine(
@@ -545,8 +546,9 @@ def _rivals(
         ranked = far[:anyway] + [entry for entry in far[anyway:] if rival(*entry[1:])]
     refine_options = options.refine or RefineOptions()  # coarse answers: every candidate is refined
     best = ranked[: max(STARTS_REFINED, anyway)]
+    fine_bar = 0.0 if settled else FINE_PASS_MIN_FITNESS  # a rival skipped could leave a wrong answer verified
     return [
-        _checked(prepared, rotation, translation, refine_options, MIN_STARTS_FITNESS, FINE_PASS_MIN_FITNESS)
+        _checked(prepared, rotation, translation, refine_options, MIN_STARTS_FITNESS, fine_bar)
         for _, rotation, translation in best
     ]
 

@@ -552,9 +552,10 @@ def test_an_answer_of_the_rotated_starts_needs_a_closer_fit(monkeypatch):
 
 
 def test_a_far_start_on_a_thinned_scan_skips_the_fine_pass(monkeypatch):
-    """On clouds thinned for the check, a start's answer that still fits under FINE_PASS_MIN_FITNESS
-    after the coarse pass is checked without the fine pass on the check's 8,000 points; the right
-    pose gets both passes."""
+    """On clouds thinned for the check and with nothing verified, a start's answer that still matches
+    under FINE_PASS_MIN_FITNESS after the coarse pass is checked without the fine pass on the check's
+    8,000 points; the right pose gets both passes, and so does the far one where it judges a verified
+    answer (skipped, a right rival could leave a wrong answer verified)."""
     from model.geometry import AlignmentClouds
     from service import registration
 
@@ -569,13 +570,15 @@ def test_a_far_start_on_a_thinned_scan_skips_the_fine_pass(monkeypatch):
     )
     far = euler_to_matrix([150.0, 40.0, -70.0]) @ rotation
 
-    def refined_on(pose) -> list[str]:
+    def refined_on(pose, settled=()) -> list[str]:
         passes.clear()
-        registration._rivals(prepared, [pose], options, [])
+        registration._rivals(prepared, [pose], options, list(settled), anyway=len(settled))
         return ["check" if clouds is prepared.check else "coarse" for clouds in passes]
 
     assert refined_on((far, translation)) == ["coarse"]
     assert refined_on((rotation, translation)) == ["coarse", "check", "check"]  # the check refines once more
+    judged = checked_answer(prepared, options, rotation, translation)
+    assert refined_on((far, translation), [judged])[:2] == ["coarse", "check"]
     monkeypatch.setattr(registration, "FINE_PASS_MIN_FITNESS", 0.0)
     assert refined_on((far, translation))[:2] == ["coarse", "check"]
 
