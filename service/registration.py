@@ -536,7 +536,8 @@ def _rivals(
 ) -> list[_Candidate]:
     """The best few coarse answers by fitness (STARTS_REFINED, or `anyway` where more), each refined
     and checked. With verified answers to judge (`settled`), only their rivals (none, where no coarse
-    answer fits loosely as well) and the best `anyway` of those far from them."""
+    answer fits loosely as well) and the best `anyway` of those far from them; without, those still
+    far off after the coarse pass skip the fine one (FINE_PASS_MIN_FITNESS)."""
     check, scored = prepared.check, prepared.scored
     ranked = [(check.fitness(scored, *pose, INLIER_SPACINGS), *pose) for pose in coarse]
     ranked.sort(key=lambda entry: -entry[0])
