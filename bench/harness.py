@@ -301,7 +301,8 @@ def scans_over(points: int) -> list[str]:
     names = []
     for archive in SCAN_ARCHIVES:
         with np.load(DATA / f"{archive}.npz") as data:
-            names += [f"{archive}/{name}" for name in data.files if data[name].ndim == 2 and len(data[name]) > points]
+            shapes = {name: data[name].shape for name in data.files}  # each access reads the array
+            names += [f"{archive}/{name}" for name, shape in shapes.items() if len(shape) == 2 and shape[0] > points]
     return names
 
 
