@@ -100,7 +100,8 @@ def networks(settings: Settings) -> list[Network]:
     return found
 
 
-async def _sync(function, *args, **kwargs):
+async def in_turn(function, *args, **kwargs):
+    """register_clouds' `run_blocking` for one request at a time: each step in the calling thread."""
     return function(*args, **kwargs)
 
 
@@ -118,7 +119,7 @@ def run(args: argparse.Namespace) -> dict:
             nets = loaded[files]
             started = time.perf_counter()
             result = asyncio.run(
-                register_clouds(pair.source, pair.target, options, settings, nets, _sync, base.threads)
+                register_clouds(pair.source, pair.target, options, settings, nets, in_turn, base.threads)
             )
             ms = (time.perf_counter() - started) * 1000.0
         found = harness.errors(pair, result.rotation, result.translation)

@@ -979,14 +979,10 @@ def test_auto_is_right_or_flags_its_answer_on_real_scans():
     views = [(name, 0) for name in harness.DEFAULT_SCANS] + RISKY_VIEWS
     pairs = {f"{name} seed {seed}": harness.scan_pair(name, seed) for name, seed in views}
     truth = {pair.name: pair for pair in harness.truth_pairs()}
-
-    async def in_turn(function, *args, **kwargs):
-        return function(*args, **kwargs)
-
     verdicts = {}
     for name, pair in (pairs | truth).items():
         answer = asyncio.run(
-            register_clouds(pair.source, pair.target, options, settings, networks, in_turn, settings.threads)
+            register_clouds(pair.source, pair.target, options, settings, networks, ab.in_turn, settings.threads)
         )
         verdicts[name] = (harness.errors(pair, answer.rotation, answer.translation)["right"], answer.verified)
     assert not [name for name, (right, verified) in verdicts.items() if verified and not right], verdicts
