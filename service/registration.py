@@ -845,17 +845,15 @@ async def _answer(
     # and a start's unverified answer replaces an unpinned one only where it fits clearly better.
     if options.method != "ifnet":
         verified = [answer for answer in answers if answer.verified]
-        if auto and _thinned(base) and [a.stage for a in verified] == ["features"]:
-            # A scan too large for the check whole: feature matching's answer alone is verified. Its half
-            # turns judge a scene's flip at a fraction of the starts' cost (24 calls, refinements on
-            # thousands of points), whose network answers on a scene land far from anything that fits.
-            found, cost = await run_blocking(_half_turns, base, verified[0], first.model, options)
-            answers += found
-            discarded.append(cost)
-            await _polish(base, answers, discarded, options, run_blocking)
-        elif verified or not (auto and any(_settled_unpinned(answer) for answer in answers)):
-            anyway = STARTS_JUDGING_ANYWAY if _corroborated(verified, features) else UNCORROBORATED_JUDGING_ANYWAY
-            found, cost = await _judged_by_starts(base, first, verified, options, run_blocking, anyway)
+        if verified or not (auto and any(_settled_unpinned(answer) for answer in answers)):
+            if auto and _thinned(base) and [a.stage for a in verified] == ["features"]:
+                # A scan too large for the check whole: feature matching's answer alone is verified. Its half
+                # turns judge a scene's flip at a fraction of the starts' cost (24 calls, refinements on
+                # thousands of points), whose network answers on a scene land far from anything that fits.
+                found, cost = await run_blocking(_half_turns, base, verified[0], first.model, options)
+            else:
+                anyway = STARTS_JUDGING_ANYWAY if _corroborated(verified, features) else UNCORROBORATED_JUDGING_ANYWAY
+                found, cost = await _judged_by_starts(base, first, verified, options, run_blocking, anyway)
             answers += _fitting_clearly_better(found, answers) if auto and not verified else found
             discarded.append(cost)
             await _polish(base, answers, discarded, options, run_blocking)
