@@ -116,11 +116,12 @@ STARTS_POINTS = 384
 # Their answers (and the half turns') are verified only where they match at least this of the source
 # both ways: of many turns tried, one that fits a third of a partial scan may be wrong.
 MIN_STARTS_FITNESS = 0.4
-# Where the coarse pass runs on a subset of the check's clouds and nothing is verified yet, a start's
-# answer matching under this share of the source at LOOSE_SPACINGS after it skips the fine pass: far
-# off, each fine iteration searched 8,000 points' neighbours far from any surface (up to 0.8 s an
-# answer on a tabletop). Of real-scan truths turned 3-40 deg (bench.fine_pass), none that ended right
-# and verified had matched under 0.24 there (at INLIER_SPACINGS, some under 0.1).
+# Where the coarse pass runs on a subset of the check's clouds and nothing verified is to be judged, a
+# coarse answer (a rotated start's, a network's or its draft's under `auto`) matching under this share
+# of the source at LOOSE_SPACINGS after it skips the fine pass: far off, each fine iteration searched
+# 8,000 points' neighbours far from any surface (up to 0.8 s an answer on a tabletop). Of real-scan
+# truths turned 3-40 deg (bench.fine_pass), none that ended right and verified or right and unpinned
+# had matched under 0.24 there (at INLIER_SPACINGS, some under 0.05).
 FINE_PASS_MIN_FITNESS = 0.2
 AGREEMENT_DEG = 5.0  # two fitting answers further apart than this contradict each other
 # An unpinned answer whose translation puts the source's centre further than this share of the extent
@@ -441,13 +442,14 @@ def _finish(
     network: Network,
     options: RegistrationOptions,
     start: np.ndarray | None = None,
+    fine_bar: float = 0.0,
 ) -> RegistrationResult:
     """The network's answer (for the source turned by `start`), refined if asked (always, for a
-    draft's coarse answer), and checked."""
+    draft's coarse answer), and checked; `fine_bar` as _checked's."""
     started = time.perf_counter()
     rotation, translation = _user_transform(prepared, prediction, np.eye(3) if start is None else start)
     refine_options = options.refine or (RefineOptions() if network.stage == "draft" else None)
-    chosen = _checked(prepared, rotation, translation, refine_options)
+    chosen = _checked(prepared, rotation, translation, refine_options, MIN_FITNESS, fine_bar)
     timings = _model_timings([prediction]) | {"postprocess_ms": (time.perf_counter() - started) * 1000.0}
     return _result(prepared, chosen, network.stage, network.model, options, timings)
 
@@ -768,7 +770,9 @@ async def _answer(
         if count not in prepared:  # a model exported for another point count; the check's clouds are the same
             prepared[count] = await run_blocking(_prepare, source, target, count, options, settings, threads, base)
         prediction = await network.predict(prepared[count].source_network, prepared[count].target_network)
-        return await run_blocking(_finish, prepared[count], prediction, network, options)
+        # Under `auto` with nothing verified to judge, a network's answer is one more candidate of the search.
+        fine_bar = FINE_PASS_MIN_FITNESS if auto and not unconfirmed else 0.0
+        return await run_blocking(_finish, prepared[count], prediction, network, options, None, fine_bar)
 
     if options.method != "global":
         asked = networks if auto else networks[:1]
@@ -970,9 +974,13 @@ async def _confirmed_draft(
             unrefined.append(prediction)
         return prediction, near
 
-    async def finish(prediction: Prediction, start: np.ndarray) -> RegistrationResult:
+    async def finish(prediction: Prediction, start: np.ndarray, judging: bool = False) -> RegistrationResult:
+        """The answer refined and checked: a candidate (which, far off after the coarse pass, skips the
+        fine one) or, `judging` a verified answer, its rival (every pass: skipped, a right rival could
+        leave a wrong answer verified)."""
         unrefined[:] = [other for other in unrefined if other is not prediction]
-        answer = await run_blocking(_finish, prepared, prediction, draft, options, start)
+        fine_bar = 0.0 if judging else FINE_PASS_MIN_FITNESS
+        answer = await run_blocking(_finish, prepared, prediction, draft, options, start, fine_bar)
         paid.append(answer.timings_ms)
         finished.append(answer)
         return answer
@@ -1033,7 +1041,7 @@ async def _confirmed_draft(
         may_contradict = _rival_test(prepared, [chosen], CONTRADICTING_LOOSE_SHARE)
         if not may_contradict(*_user_transform(prepared, own_prediction, np.eye(3))):
             return stands(chosen)
-        own = await finish(own_prediction, np.eye(3))
+        own = await finish(own_prediction, np.eye(3), judging=True)
     if _unless_contradicted(chosen, [chosen, own]).verified:
         return stands(chosen)
     if own.verified:  # two verified answers apart: the clouds fit both, whatever else is asked

@@ -17,6 +17,8 @@ def test_turned_truths_of_a_large_scan_are_refined_and_judged(tmp_path, capsys):
     fine_pass.main(["--set", "scans:200000", "--every", "2", "--degrees", "3", "--turns", "1", "--out", str(out)])
     (trial,) = json.loads(out.read_text())["trials"]
     assert trial["pair"] == "real_scans/pcl_office1" and trial["degrees"] == 3.0
-    assert trial["right"] and trial["verified"]
+    assert trial["right"] and trial["verified"] and not trial["unpinned"]
     assert 0.0 < trial["tight"] <= trial["loose"] <= 1.0
-    assert "1 trials on thinned views, 1 right and verified" in capsys.readouterr().out
+    printed = capsys.readouterr().out
+    assert "1 trials on thinned views, checked as a start's answer" in printed
+    assert "right and verified: 1\n" in printed and "right and unpinned: 0\n" in printed

@@ -7,6 +7,7 @@ the same indices), so any error in normalising, denormalising or composing shows
 """
 
 import asyncio
+import dataclasses
 import functools
 
 import numpy as np
@@ -223,6 +224,51 @@ def test_auto_asks_the_draft_first_and_keeps_its_answer_only_where_feature_match
     assert asked == [("model", 768)] and (network.stage, network.refinement) == ("ifnet", None)
 
 
+def test_under_auto_only_candidates_may_skip_the_fine_pass(real_scans, monkeypatch):
+    """Under `auto`, with nothing verified to judge, the draft's and the models' answers are candidates
+    of the search: refined, they may skip the fine pass (FINE_PASS_MIN_FITNESS); where the draft's
+    verified answer waits to be judged, the models' answers judge it and get every pass, as does the
+    answer `ifnet` gives."""
+    from service import registration
+
+    asked, finished, finish = [], [], registration._finish
+    monkeypatch.setattr(
+        registration, "_finish", lambda *args: finished.append((args[2].stage, args[-1])) or finish(*args)
+    )
+
+    def shifted(name: str):
+        """An oracle whose translation lands 5 cloud radii off, in the network's frame: it fits nothing."""
+        predict = recording(asked, name)
+
+        async def off(source_n, target_n):
+            prediction = await predict(source_n, target_n)
+            return dataclasses.replace(prediction, translation=prediction.translation + 5.0)
+
+        return off
+
+    def run(method, draft_predict, guess_turn):
+        monkeypatch.setattr(registration, "feature_match", lambda *args: (guess_turn @ TRUE_ROTATION, far))
+        options, settings, _ = pipeline_inputs(None, None, method=method)
+        networks = [
+            Network("object", 768, recording(asked, "model"), draft=Network("object", 384, draft_predict, "draft"))
+        ]
+        finished.clear()
+        return asyncio.run(register_clouds(source, target, options, settings, networks))
+
+    source = real_scans["kitti_000008_fov"]
+    target = apply_transform(source, TRUE_ROTATION, TRUE_TRANSLATION)
+    far = TRUE_TRANSLATION + 10.0 * radius(source)  # the guess's turn, but far off: it fails the check
+    bar = registration.FINE_PASS_MIN_FITNESS
+    searched = run("auto", shifted("draft"), np.eye(3))
+    # The draft asked as the source lies and turned by the guess, both off; then the model.
+    assert finished == [("draft", bar), ("draft", bar), ("ifnet", bar)]
+    assert (searched.stage, searched.verified) == ("ifnet", True)
+    judged = run("auto", recording(asked, "draft"), euler_to_matrix([10.0, 0.0, 0.0]))
+    # The draft's verified answer, 10 deg from the guess, is not confirmed: the model judges it.
+    assert finished == [("draft", bar), ("ifnet", 0.0)] and judged.verified
+    assert run("ifnet", shifted("draft"), np.eye(3)).stage == "ifnet" and finished == [("ifnet", 0.0)]
+
+
 @pytest.mark.parametrize("points", [None, 6_000], ids=["thinned scan", "whole"])
 def test_where_the_draft_fails_a_verified_guess_spares_the_models(real_scans, points):
     """`auto` past an unconfirmed draft: feature matching's answer, refined and verified, is judged
@@ -357,7 +403,7 @@ def test_a_draft_answer_the_refined_guess_fits_clearly_better_than_is_not_confir
     guess = euler_to_matrix([-1.9, 0.0, 0.0]) @ TRUE_ROTATION
     monkeypatch.setattr(registration, "feature_match", lambda *args: (guess, TRUE_TRANSLATION))
 
-    def settled(prepared, rotation, translation, refine_options, min_fitness=None):
+    def settled(prepared, rotation, translation, refine_options, min_fitness=None, fine_bar=0.0):
         local = rotation_angle_deg(rotation, beside) < 1.0
         fitness = 0.30 if local else 0.50
         score = AlignmentScore(0.01, 0.015, fitness, 0.005, fitness, int(1000 * fitness), 0.1)
