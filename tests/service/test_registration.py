@@ -555,6 +555,36 @@ def test_an_unpinned_answer_matching_most_of_the_source_ends_the_search(monkeypa
         assert result.stage == "ifnet" and rotation_angle_deg(result.rotation, truth) < 0.5
 
 
+@pytest.mark.parametrize("fitness_needed", [0.4, 0.9], ids=["matches-enough", "matches-less"])
+def test_on_a_thinned_scan_an_unpinned_answer_matching_less_also_ends_the_search(monkeypatch, fitness_needed):
+    """Two overlapping views of a large table top (thinned for the check): feature matching's answer,
+    right, fails the check only on its constraint and matches about half the source. There
+    UNPINNED_FITNESS_THINNED, not UNPINNED_FITNESS, ends the search: no model and no rotated start is
+    asked where the answer matches that much; where it matches less, they are."""
+    from service import registration
+
+    monkeypatch.setattr(registration, "UNPINNED_FITNESS_THINNED", fitness_needed)
+    rng = np.random.default_rng(4)
+    table = np.column_stack([rng.uniform(-1.5, 1.5, (24_000, 2)), np.zeros(24_000)])
+    scene = np.concatenate([table, rng.uniform([-0.1, -0.1, 0.0], [0.1, 0.1, 0.02], (400, 3))])
+    source, view = scene[scene[:, 0] < 0.5], scene[scene[:, 0] > -0.5]
+    truth = euler_to_matrix([20.0, 5.0, -5.0])
+    monkeypatch.setattr(registration, "feature_match", lambda *args: (truth, np.zeros(3)))
+    asked = []
+    options, settings, _ = pipeline_inputs(None, None, method="auto")
+    turn = euler_to_matrix([90.0, 0.0, 0.0])  # every draft answer far from the (right) guess
+    draft = Network("object", 384, recording(asked, "draft", turn), "draft")
+    networks = [Network("object", 768, recording(asked, "model"), draft=draft)]
+    result = asyncio.run(
+        register_clouds(source, apply_transform(view, truth, np.zeros(3)), options, settings, networks)
+    )
+    assert not result.verified and "pin" in result.reason and 0.4 < result.score.fitness < 0.9
+    ended = fitness_needed < result.score.fitness
+    assert (("model", 768) not in asked) == ended and (len(asked) < len(registration.STARTS)) == ended
+    if ended:
+        assert result.stage == "features" and rotation_angle_deg(result.rotation, truth) < 0.5
+
+
 def test_a_start_replaces_an_unpinned_answer_only_where_it_fits_clearly_better(monkeypatch):
     """Where the rotated starts search past an unpinned answer (the right one, on a tabletop), an
     unverified start fitting less than RIVAL_FITNESS_MARGIN better (the table flipped) is left out;
