@@ -878,12 +878,13 @@ async def _matched_wider(
 ) -> tuple[_FeatureGuess, RegistrationResult]:
     """Feature matching's guess and its `answer` or, where that fails the check on a thinned cloud
     (the matcher saw the check's subset), the guess of a second match on up to WIDER_FEATURE_POINTS
-    of each cloud and its answer, if verified. The answer set aside goes to `discarded`."""
+    of each cloud and its answer, if verified, or unpinned where the first is not (it fits and
+    settles, the first does not). The answer set aside goes to `discarded`."""
     if answer.verified or not _thinned(prepared) or WIDER_FEATURE_POINTS <= CHECK_MAX_POINTS:
         return features, answer
     wider = await run_blocking(_feature_guess, prepared, match, WIDER_FEATURE_POINTS, features.spacing)
     wider_answer = await run_blocking(_finish_features, prepared, wider, answer.model, options)
-    if not wider_answer.verified:
+    if not (wider_answer.verified or (wider_answer.unpinned and not answer.unpinned)):
         discarded.append(wider_answer.timings_ms)
         return features, answer
     discarded.append(answer.timings_ms)

@@ -498,6 +498,14 @@ def table_top(rng: np.random.Generator) -> np.ndarray:
     return np.concatenate([table, box])
 
 
+def table_views(rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """Two views of a large table with a low box on it (thinned for the check), each seeing about 2/3
+    of it: a right answer matches about half the source and fails the check on its constraint."""
+    table = np.column_stack([rng.uniform(-1.5, 1.5, (24_000, 2)), np.zeros(24_000)])
+    scene = np.concatenate([table, rng.uniform([-0.1, -0.1, 0.0], [0.1, 0.1, 0.02], (400, 3))])
+    return scene[scene[:, 0] < 0.5], scene[scene[:, 0] > -0.5]
+
+
 def tabletop_answer(monkeypatch, guess_turn_deg: float):
     """`auto` on the table top moved by a known turn, with feature matching's guess `guess_turn_deg`
     off it and oracle draft and model (`recording`): the answer, the calls asked, the true rotation."""
@@ -564,10 +572,7 @@ def test_on_a_thinned_scan_an_unpinned_answer_matching_less_also_ends_the_search
     from service import registration
 
     monkeypatch.setattr(registration, "UNPINNED_FITNESS_THINNED", fitness_needed)
-    rng = np.random.default_rng(4)
-    table = np.column_stack([rng.uniform(-1.5, 1.5, (24_000, 2)), np.zeros(24_000)])
-    scene = np.concatenate([table, rng.uniform([-0.1, -0.1, 0.0], [0.1, 0.1, 0.02], (400, 3))])
-    source, view = scene[scene[:, 0] < 0.5], scene[scene[:, 0] > -0.5]
+    source, view = table_views(np.random.default_rng(4))
     truth = euler_to_matrix([20.0, 5.0, -5.0])
     monkeypatch.setattr(registration, "feature_match", lambda *args: (truth, np.zeros(3)))
     asked = []
@@ -693,6 +698,34 @@ def test_feature_matching_lost_on_the_checks_subset_matches_again_on_more_points
     else:
         assert matched == [subset_size]
         assert not (result.verified and rotation_angle_deg(result.rotation, TRUE_ROTATION) < 2.0)
+
+
+def test_feature_matching_lost_on_the_subset_gives_way_to_an_unpinned_answer_on_more_points(monkeypatch):
+    """Where the match on the check's subset is lost (its answer fits nothing) and the one on more
+    points is right but unpinned (two views of a table top), the second answer is feature matching's:
+    it fits and settles, so it ends the search (no model, no rotated start) and is given, flagged."""
+    from service import registration
+
+    source, view = table_views(np.random.default_rng(4))
+    truth = euler_to_matrix([20.0, 5.0, -5.0])
+    matched = []
+
+    def stand_in(source, target, spacing, spacings):
+        matched.append(len(source))
+        lost = len(source) <= registration.CHECK_MAX_POINTS
+        return (euler_to_matrix([0.0, 0.0, 90.0]) @ truth if lost else truth), np.zeros(3)
+
+    monkeypatch.setattr(registration, "feature_match", stand_in)
+    asked = []
+    options, settings, _ = pipeline_inputs(None, None, method="auto")
+    draft = Network("object", 384, recording(asked, "draft", euler_to_matrix([90.0, 0.0, 0.0])), "draft")
+    networks = [Network("object", 768, recording(asked, "model"), draft=draft)]
+    result = asyncio.run(
+        register_clouds(source, apply_transform(view, truth, np.zeros(3)), options, settings, networks)
+    )
+    assert matched == [registration.CHECK_MAX_POINTS, min(len(source), registration.WIDER_FEATURE_POINTS)]
+    assert (result.stage, result.verified) == ("features", False) and "pin" in result.reason
+    assert rotation_angle_deg(result.rotation, truth) < 0.5 and ("model", 768) not in asked
 
 
 def test_feature_matching_that_agrees_with_a_verified_answer_is_not_refined_again(real_scans, monkeypatch):
