@@ -817,7 +817,8 @@ async def _answer(
             if draft is not None:
                 return draft, features
             discarded += paid
-            # Feature matching's answer before the models': they follow only where it fails the check.
+            # Feature matching's answer before the models': they follow only where it fails the check and has
+            # not settled unpinned.
             if features_answer is None:
                 features_answer = await run_blocking(_finish_features, base, features, first.model, options)
             features, features_answer = await _matched_wider(
@@ -1055,7 +1056,8 @@ async def _confirmed_draft(
 
 def _settled_unpinned(answer: RegistrationResult, prepared: _Prepared) -> bool:
     """The answer fails the check only on its constraint and matches at least UNPINNED_FITNESS of the
-    source: under `auto` the search (the next models, the rotated starts) ends there."""
+    source (UNPINNED_FITNESS_THINNED on a thinned scan): under `auto` the search (the next models, the
+    rotated starts) ends there."""
     bar = UNPINNED_FITNESS_THINNED if _thinned(prepared) else UNPINNED_FITNESS
     return answer.unpinned and answer.score.fitness >= bar
 
