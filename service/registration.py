@@ -161,6 +161,10 @@ SLIDE_ITERATIONS = 10  # per pass of a probe: on SLIDE_POINTS points GICP often 
 SLIDE_GUESS_SHARE = 0.01
 RIVAL_FITNESS_MARGIN = 0.05  # an unverified answer fitting within this of a verified one also contradicts it
 RIVAL_RMSE_SHARE = 0.8  # a verified answer this much tighter than a verified rival, and fitting as well, outranks it
+# A network's verified answer that feature matching does not confirm is given verified only where it matches
+# at least this share of the source, as a rotated start's must (MIN_STARTS_FITNESS): on a TUM room view a
+# local minimum 3.7 deg off fits 0.30 and passes the check, and where feature matching missed, nothing judged it.
+UNCORROBORATED_MIN_FITNESS = MIN_STARTS_FITNESS
 CONFIRMING_BETTER_FIT = 0.05  # feature matching's refined answer fitting this much better confirms nothing
 # A start's answer, refined from up to 63 degrees away, can settle in a local minimum that passes the check
 # beside the truth: the answers of these stages are also refined from turns of POLISH_DEG about them.
@@ -728,7 +732,25 @@ async def register_clouds(
     count = (first.draft or first).network_points if options.method == "auto" else first.network_points
     base = await run_blocking(_prepare, source, target, count, options, settings, threads)
     answer, guess = await _answer(source, target, base, options, settings, networks, run_blocking, threads, match)
-    return await run_blocking(_unless_slid, base, answer, options, guess)
+    return _unless_uncorroborated(await run_blocking(_unless_slid, base, answer, options, guess), guess)
+
+
+def _unless_uncorroborated(answer: RegistrationResult, guess: _FeatureGuess | None) -> RegistrationResult:
+    """The answer, or, where it is a network's, verified, matching under UNCORROBORATED_MIN_FITNESS of
+    the source, and feature matching's guess (if any) lies further than AGREEMENT_DEG from it, the
+    same answer not verified."""
+    if (
+        not answer.verified
+        or answer.stage not in ("ifnet", "draft")
+        or answer.score.fitness >= UNCORROBORATED_MIN_FITNESS
+        or (guess is not None and _confirms(guess, answer))
+    ):
+        return answer
+    reason = (
+        f"low overlap and no second opinion: it matches {answer.score.fitness:.2f} of the source "
+        f"(at least {UNCORROBORATED_MIN_FITNESS:g} needed where feature matching does not agree)"
+    )
+    return dataclasses.replace(answer, verified=False, reason=reason)
 
 
 def verdicts(

@@ -399,6 +399,7 @@ def test_a_draft_answer_the_refined_guess_fits_clearly_better_than_is_not_confir
 
     if margin is not None:
         monkeypatch.setattr(registration, "CONFIRMING_BETTER_FIT", margin)
+        monkeypatch.setattr(registration, "UNCORROBORATED_MIN_FITNESS", 0.0)  # the other net under a 0.30 fit
     beside = euler_to_matrix([3.7, 0.0, 0.0]) @ TRUE_ROTATION
     guess = euler_to_matrix([-1.9, 0.0, 0.0]) @ TRUE_ROTATION
     monkeypatch.setattr(registration, "feature_match", lambda *args: (guess, TRUE_TRANSLATION))

@@ -551,6 +551,29 @@ def test_an_answer_of_the_rotated_starts_needs_a_closer_fit(monkeypatch):
     assert not start.verification.verified and "needed" in start.verification.reason
 
 
+def test_a_network_answer_no_feature_match_confirms_must_match_more_to_stay_verified():
+    """A network's verified answer matching under UNCORROBORATED_MIN_FITNESS of the source is given
+    unverified where feature matching's guess does not confirm it (a TUM room view's local minimum,
+    3.7 deg and 0.49 m off, fits 0.30 and passes the check); confirmed, or matching more, or feature
+    matching's own, it stays verified."""
+    import dataclasses
+
+    from service import registration
+
+    prepared, options, rotation, translation = two_captures(stepped_wall)
+    answer = dataclasses.replace(checked_answer(prepared, options, rotation, translation), stage="ifnet")
+    assert answer.verified
+    low = dataclasses.replace(answer, score=answer.score._replace(fitness=0.35))
+    far = registration._FeatureGuess(euler_to_matrix([90.0, 0.0, 0.0]) @ rotation, translation, 0.01, 0.1)
+    near = dataclasses.replace(far, rotation=rotation)
+    flagged = registration._unless_uncorroborated(low, far)
+    assert not flagged.verified and "no second opinion" in flagged.reason and flagged.rotation is low.rotation
+    assert not registration._unless_uncorroborated(low, None).verified
+    assert registration._unless_uncorroborated(low, near) is low
+    assert registration._unless_uncorroborated(answer, far) is answer  # it matches more than 0.4
+    assert registration._unless_uncorroborated(dataclasses.replace(low, stage="features"), far).verified
+
+
 def test_a_far_start_on_a_thinned_scan_skips_the_fine_pass(monkeypatch):
     """On clouds thinned for the check and with nothing verified, a start's answer that still matches
     under FINE_PASS_MIN_FITNESS after the coarse pass is checked without the fine pass on the check's
@@ -785,7 +808,9 @@ def test_only_a_verified_answer_that_matches_little_is_looked_beside(monkeypatch
         assert registration._unless_slid(prepared, left, options, None) is left
     assert registration._unless_slid(prepared, slid, options, None) is not slid
     handed = []
-    monkeypatch.setattr(registration, "_unless_slid", lambda prepared, answer, options, guess: handed.append(answer))
+    monkeypatch.setattr(
+        registration, "_unless_slid", lambda prepared, answer, options, guess: handed.append(answer) or answer
+    )
     _, settings, _ = pipeline_inputs(None, None)
     for given in (right, slid, unverified):
 
@@ -956,6 +981,40 @@ RISKY_VIEWS = [
     ("indoor_scans/iclnuim__iclnuim-slambook2__4", 0),
     ("indoor_scans/iclnuim__iclnuim-slambook2__4", 1),
 ]
+
+
+@pytest.mark.slow
+def test_auto_flags_a_local_minimum_no_feature_match_confirms(monkeypatch):
+    """The TUM room view of RISKY_VIEWS with feature matching's guess turned 90 deg away (KISS-Matcher's
+    answer differs from run to run, and once missed there): the model's answer, a local minimum 3.7 deg
+    off that passes the check, is not given verified."""
+    import asyncio
+
+    from conftest import SHARED_DATA
+
+    from bench import ab, harness
+    from service import registration
+    from service.schemas import RefineOptions, RegistrationOptions
+
+    if not (SHARED_DATA / "indoor_scans.npz").is_file():
+        pytest.skip(f"real scans not found in {SHARED_DATA} (shared data is not checked out here)")
+    matched, turn = registration.feature_match, euler_to_matrix([90.0, 0.0, 0.0])
+
+    def missed(source, target, spacing, spacings):
+        rotation, translation = matched(source, target, spacing, spacings)
+        centre = target.mean(axis=0)
+        return turn @ rotation, turn @ (translation - centre) + centre
+
+    monkeypatch.setattr(registration, "feature_match", missed)
+    settings = Settings()
+    pair = harness.scan_pair(*RISKY_VIEWS[0])
+    options = RegistrationOptions(method="auto", refine=RefineOptions())
+    answer = asyncio.run(
+        registration.register_clouds(
+            pair.source, pair.target, options, settings, ab.networks(settings), ab.in_turn, settings.threads
+        )
+    )
+    assert harness.errors(pair, answer.rotation, answer.translation)["right"] or not answer.verified
 
 
 @pytest.mark.slow
