@@ -732,7 +732,15 @@ async def register_clouds(
     count = (first.draft or first).network_points if options.method == "auto" else first.network_points
     base = await run_blocking(_prepare, source, target, count, options, settings, threads)
     answer, guess = await _answer(source, target, base, options, settings, networks, run_blocking, threads, match)
-    return _unless_uncorroborated(await run_blocking(_unless_slid, base, answer, options, guess), guess)
+    return await run_blocking(_judged, base, answer, options, guess)
+
+
+def _judged(
+    prepared: _Prepared, answer: RegistrationResult, options: RegistrationOptions, guess: _FeatureGuess | None
+) -> RegistrationResult:
+    """The answer as a request gives it: past the slide check and, a network's, the second opinion of
+    feature matching's `guess`."""
+    return _unless_uncorroborated(_unless_slid(prepared, answer, options, guess), guess)
 
 
 def _unless_uncorroborated(answer: RegistrationResult, guess: _FeatureGuess | None) -> RegistrationResult:
@@ -757,13 +765,13 @@ def verdicts(
     source: np.ndarray, target: np.ndarray, poses: Sequence[tuple[np.ndarray, np.ndarray]], settings: Settings
 ) -> list[RegistrationResult]:
     """The verdict a request's answer gets, for each given pose (R, t) of `source` onto `target`:
-    the check, then the slide check, as under `auto`, with feature matching's guess. For calibrating
-    them on pairs with known truth."""
+    the check, then the slide check and feature matching's second opinion (_judged), as under
+    `auto`, with feature matching's guess. For calibrating them on pairs with known truth."""
     options = RegistrationOptions()
     prepared = _prepare(source, target, STARTS_POINTS, options, settings)
     guess = _feature_guess(prepared)
     answers = (_result(prepared, _checked(prepared, *pose, None), "ifnet", "", options, dict(_FREE)) for pose in poses)
-    return [_unless_slid(prepared, answer, options, guess) for answer in answers]
+    return [_judged(prepared, answer, options, guess) for answer in answers]
 
 
 async def _answer(
