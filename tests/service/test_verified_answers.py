@@ -983,18 +983,29 @@ RISKY_VIEWS = [
 ]
 
 
+def auto_answer(pair, settings: Settings, networks):
+    """`auto` with `refine` on the pair in process, one step after another, as bench.ab runs it."""
+    import asyncio
+
+    from bench import ab
+    from service.registration import register_clouds
+    from service.schemas import RefineOptions, RegistrationOptions
+
+    options = RegistrationOptions(method="auto", refine=RefineOptions())
+    return asyncio.run(
+        register_clouds(pair.source, pair.target, options, settings, networks, ab.in_turn, settings.threads)
+    )
+
+
 @pytest.mark.slow
 def test_auto_flags_a_local_minimum_no_feature_match_confirms(monkeypatch):
     """The TUM room view of RISKY_VIEWS with feature matching's guess turned 90 deg away (KISS-Matcher's
     answer differs from run to run, and once missed there): the model's answer, a local minimum 3.7 deg
     off that passes the check, is not given verified."""
-    import asyncio
-
     from conftest import SHARED_DATA
 
     from bench import ab, harness
     from service import registration
-    from service.schemas import RefineOptions, RegistrationOptions
 
     if not (SHARED_DATA / "indoor_scans.npz").is_file():
         pytest.skip(f"real scans not found in {SHARED_DATA} (shared data is not checked out here)")
@@ -1008,12 +1019,7 @@ def test_auto_flags_a_local_minimum_no_feature_match_confirms(monkeypatch):
     monkeypatch.setattr(registration, "feature_match", missed)
     settings = Settings()
     pair = harness.scan_pair(*RISKY_VIEWS[0])
-    options = RegistrationOptions(method="auto", refine=RefineOptions())
-    answer = asyncio.run(
-        registration.register_clouds(
-            pair.source, pair.target, options, settings, ab.networks(settings), ab.in_turn, settings.threads
-        )
-    )
+    answer = auto_answer(pair, settings, ab.networks(settings))
     assert harness.errors(pair, answer.rotation, answer.translation)["right"] or not answer.verified
 
 
@@ -1022,27 +1028,20 @@ def test_auto_is_right_or_flags_its_answer_on_real_scans():
     """`auto` with `refine`, as the service runs it, on the benchmark's views of real scans
     (bench.harness.scan_pair, seed 0), the real pairs with ground truth and RISKY_VIEWS: no wrong
     answer verified, and every pair with ground truth right."""
-    import asyncio
-
     from conftest import SHARED_DATA
 
     from bench import ab, harness
-    from service.registration import register_clouds
-    from service.schemas import RefineOptions, RegistrationOptions
 
     if not (SHARED_DATA / "indoor_pairs.npz").is_file():
         pytest.skip(f"real scans not found in {SHARED_DATA} (shared data is not checked out here)")
     settings = Settings()
     networks = ab.networks(settings)
-    options = RegistrationOptions(method="auto", refine=RefineOptions())
     views = [(name, 0) for name in harness.DEFAULT_SCANS] + RISKY_VIEWS
     pairs = {f"{name} seed {seed}": harness.scan_pair(name, seed) for name, seed in views}
     truth = {pair.name: pair for pair in harness.truth_pairs()}
     verdicts = {}
     for name, pair in (pairs | truth).items():
-        answer = asyncio.run(
-            register_clouds(pair.source, pair.target, options, settings, networks, ab.in_turn, settings.threads)
-        )
+        answer = auto_answer(pair, settings, networks)
         verdicts[name] = (harness.errors(pair, answer.rotation, answer.translation)["right"], answer.verified)
     assert not [name for name, (right, verified) in verdicts.items() if verified and not right], verdicts
     assert all(verdicts[name][0] for name in truth), verdicts
