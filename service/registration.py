@@ -908,10 +908,12 @@ async def _matched_wider(
     discarded: list[dict[str, float]],
 ) -> tuple[_FeatureGuess, RegistrationResult]:
     """Feature matching's guess and its `answer` or, where that fails the check on a thinned cloud
-    (the matcher saw the check's subset), the guess of a second match on up to WIDER_FEATURE_POINTS
-    of each cloud and its answer, if verified, or unpinned where the first is not (it fits and
-    settles, the first does not). The answer set aside goes to `discarded`."""
-    if answer.verified or not _thinned(prepared) or WIDER_FEATURE_POINTS <= CHECK_MAX_POINTS:
+    (the matcher saw the check's subset) and has not settled unpinned (the search ends there), the
+    guess of a second match on up to WIDER_FEATURE_POINTS of each cloud and its answer, if verified,
+    or unpinned where the first is not (it fits and settles, the first does not). The answer set
+    aside goes to `discarded`."""
+    settled = answer.verified or _settled_unpinned(answer, prepared)
+    if settled or not _thinned(prepared) or WIDER_FEATURE_POINTS <= CHECK_MAX_POINTS:
         return features, answer
     wider = await run_blocking(_feature_guess, prepared, match, WIDER_FEATURE_POINTS, features.spacing)
     wider_answer = await run_blocking(_finish_features, prepared, wider, answer.model, options)

@@ -729,6 +729,33 @@ def test_feature_matching_lost_on_the_subset_gives_way_to_an_unpinned_answer_on_
     assert rotation_angle_deg(result.rotation, truth) < 0.5 and ("model", 768) not in asked
 
 
+def test_feature_matching_settled_unpinned_on_the_subset_does_not_match_again(monkeypatch):
+    """Where the match on the check's subset of two views of a table top is right but unpinned, and
+    fits enough to end the search, no second match on more points is made: the answer is given,
+    flagged, from the one match."""
+    from service import registration
+
+    source, view = table_views(np.random.default_rng(4))
+    truth = euler_to_matrix([20.0, 5.0, -5.0])
+    matched = []
+
+    def stand_in(source, target, spacing, spacings):
+        matched.append(len(source))
+        return truth, np.zeros(3)
+
+    monkeypatch.setattr(registration, "feature_match", stand_in)
+    asked = []
+    options, settings, _ = pipeline_inputs(None, None, method="auto")
+    draft = Network("object", 384, recording(asked, "draft", euler_to_matrix([90.0, 0.0, 0.0])), "draft")
+    networks = [Network("object", 768, recording(asked, "model"), draft=draft)]
+    result = asyncio.run(
+        register_clouds(source, apply_transform(view, truth, np.zeros(3)), options, settings, networks)
+    )
+    assert matched == [registration.CHECK_MAX_POINTS]
+    assert (result.stage, result.verified) == ("features", False) and "pin" in result.reason
+    assert rotation_angle_deg(result.rotation, truth) < 0.5 and ("model", 768) not in asked
+
+
 def test_feature_matching_that_agrees_with_a_verified_answer_is_not_refined_again(real_scans, monkeypatch):
     """Its guess within AGREEMENT_DEG of the verified answer confirms it as it is; a guess further off
     is refined and checked (here it then fits too poorly to contradict the answer)."""
