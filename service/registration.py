@@ -164,6 +164,7 @@ RIVAL_RMSE_SHARE = 0.8  # a verified answer this much tighter than a verified ri
 # A network's verified answer that feature matching does not confirm is given verified only where it matches
 # at least this share of the source, as a rotated start's must (MIN_STARTS_FITNESS): on a TUM room view a
 # local minimum 3.7 deg off fits 0.30 and passes the check, and where feature matching missed, nothing judged it.
+# Under it, a guess within AGREEMENT_DEG confirms the draft's answer only refined (_confirmed_draft).
 UNCORROBORATED_MIN_FITNESS = MIN_STARTS_FITNESS
 CONFIRMING_BETTER_FIT = 0.05  # feature matching's refined answer fitting this much better confirms nothing
 # A start's answer, refined from up to 63 degrees away, can settle in a local minimum that passes the check
@@ -984,8 +985,9 @@ async def _confirmed_draft(
     The draft is asked for the source as it lies (`first_call`, where that call is under way
     already) and, unless that answer is verified, again for the source turned by the guess: the
     network knows turns of up to 45 deg, the guess any turn. A verified answer is confirmed by the
-    guess within AGREEMENT_DEG of it or, where the guess is too coarse for that (a few degrees off
-    on noisy clouds), by the guess refined and checked. An answer from the guess lies near it by
+    guess within AGREEMENT_DEG of it (where it matches at least UNCORROBORATED_MIN_FITNESS of the
+    source) or, where the guess is too coarse for that (a few degrees off on noisy clouds), by the
+    guess refined and checked. An answer from the guess lies near it by
     construction, so it stands only if the first answer, refined, does not contradict it (as the
     model's answer would in the second opinion; one set aside that fits loosely under
     CONTRADICTING_LOOSE_SHARE as well is not refined for that); where that answer is verified too,
@@ -1025,11 +1027,13 @@ async def _confirmed_draft(
         """Feature matching's guess agrees with the answer: as it is (an unpinned answer, which may
         have slid off the truth with its turn right, also in translation), or refined and judged
         alike (verified for a verified answer, unpinned for an unpinned one)."""
-        if (
-            _confirms(features, answer)
-            if answer.verified
-            else _lands_on(prepared, features, answer, UNPINNED_AGREEMENT_SHARE)
-        ):
+        if answer.verified:
+            # At low overlap a local minimum a few degrees beside the truth passes the check, and a guess
+            # beside the truth may lie within AGREEMENT_DEG of it: the guess refined must find it there.
+            near = _confirms(features, answer) and answer.score.fitness >= UNCORROBORATED_MIN_FITNESS
+        else:
+            near = _lands_on(prepared, features, answer, UNPINNED_AGREEMENT_SHARE)
+        if near:
             return True
         if not refined:
             refined.append(await run_blocking(_finish_features, prepared, features, draft.model, options))

@@ -998,10 +998,12 @@ def auto_answer(pair, settings: Settings, networks):
 
 
 @pytest.mark.slow
-def test_auto_flags_a_local_minimum_no_feature_match_confirms(monkeypatch):
+@pytest.mark.parametrize("turn_deg", [[90.0, 0.0, 0.0], [0.0, -5.0, 0.0]], ids=["missed", "beside"])
+def test_auto_flags_a_local_minimum_no_feature_match_confirms(monkeypatch, turn_deg):
     """The TUM room view of RISKY_VIEWS with feature matching's guess turned 90 deg away (KISS-Matcher's
-    answer differs from run to run, and once missed there): the model's answer, a local minimum 3.7 deg
-    off that passes the check, is not given verified."""
+    answer differs from run to run, and once missed there) or 5 deg, within AGREEMENT_DEG of a local
+    minimum 3.7 deg off that passes the check and fits 0.30: neither the model's nor the draft's answer
+    there is given verified."""
     from conftest import SHARED_DATA
 
     from bench import ab, harness
@@ -1009,7 +1011,7 @@ def test_auto_flags_a_local_minimum_no_feature_match_confirms(monkeypatch):
 
     if not (SHARED_DATA / "indoor_scans.npz").is_file():
         pytest.skip(f"real scans not found in {SHARED_DATA} (shared data is not checked out here)")
-    matched, turn = registration.feature_match, euler_to_matrix([90.0, 0.0, 0.0])
+    matched, turn = registration.feature_match, euler_to_matrix(turn_deg)
 
     def missed(source, target, spacing, spacings):
         rotation, translation = matched(source, target, spacing, spacings)
