@@ -138,7 +138,8 @@ UNPINNED_FITNESS_THINNED = 0.4
 # would not bring the two within AGREEMENT_DEG (a draft's answer is 4-15 deg off on ModelNet, median).
 DRAFT_REACH_DEG = 30.0
 # The networks learnt turns of up to this per axis: a draft's answer turned further from `init` may be
-# the guess's, a symmetric shape's turned pose, so it is judged before it stands (_answer).
+# the guess's, a symmetric shape's turned pose, so it is judged before it stands (_answer); and only a
+# guess turning the source further is worth asking the draft again (_confirmed_draft).
 NETWORK_REACH_DEG = 45.0
 # A verified answer matching less than SLIDE_FITNESS of the source, and of its surfaces (outliers lower the
 # fitness, not the overlap: AlignmentClouds.surface_fitness), may lie beside the truth, slid along
@@ -983,8 +984,9 @@ async def _confirmed_draft(
     which judges them with its own (an answer the guess does not confirm may still be right).
 
     The draft is asked for the source as it lies (`first_call`, where that call is under way
-    already) and, unless that answer is verified, again for the source turned by the guess: the
-    network knows turns of up to 45 deg, the guess any turn. A verified answer is confirmed by the
+    already) and, unless that answer is verified, again for the source turned by the guess where
+    that turn is beyond NETWORK_REACH_DEG: the network knows turns of up to 45 deg, the guess any
+    turn. A verified answer is confirmed by the
     guess within AGREEMENT_DEG of it (where it matches at least UNCORROBORATED_MIN_FITNESS of the
     source) or, where the guess is too coarse for that (a few degrees off on noisy clouds), by the
     guess refined and checked. An answer from the guess lies near it by
@@ -1069,7 +1071,9 @@ async def _confirmed_draft(
         # check the same way, and one far from it would contradict them both. It stands, not verified.
         return stands(own)
     start = features.rotation @ prepared.init[:3, :3].T  # the guess's turn of the network's source
-    if np.allclose(start, np.eye(3)):  # no turn (feature matching found nothing): the same call again
+    if rotation_angle_deg(start, np.eye(3)) <= NETWORK_REACH_DEG:
+        # The first call already saw the source within the network's reach of the guess's turn (none at
+        # all where feature matching found nothing): turned by the guess, the draft answers the same.
         return set_aside()
     prediction, near = await ask(start)
     if not near:

@@ -292,6 +292,31 @@ def test_where_the_draft_fails_a_verified_guess_spares_the_models(real_scans, po
     assert rotation_angle_deg(result.rotation, TRUE_ROTATION) < 0.01
 
 
+@pytest.mark.parametrize("truth_deg", [[20.0, 10.0, 0.0], [150.0, 40.0, -70.0]], ids=["within reach", "beyond"])
+def test_the_draft_is_asked_again_only_where_the_guess_turns_the_source_beyond_its_reach(
+    real_scans, monkeypatch, truth_deg
+):
+    """The draft's first answer is 90 deg off. Where feature matching's guess turns the source within
+    NETWORK_REACH_DEG, the draft already saw the source within its reach of that turn: it is not asked
+    again, and the guess refined is the answer. Beyond it, the draft is asked for the source turned by
+    the guess."""
+    from service import registration
+
+    truth = euler_to_matrix(truth_deg)
+    monkeypatch.setattr(registration, "feature_match", lambda *args: (truth, TRUE_TRANSLATION))
+    asked = []
+    source = real_scans["kitti_000008_fov"]  # thinned for the check: no rotated start asks the draft
+    target = apply_transform(source, truth, TRUE_TRANSLATION)
+    options, settings, _ = pipeline_inputs(None, None, method="auto")
+    draft = Network("object", 384, recording(asked, "draft", euler_to_matrix([90.0, 0.0, 0.0])), "draft")
+    networks = [Network("object", 768, recording(asked, "model"), draft=draft)]
+    result = asyncio.run(register_clouds(source, target, options, settings, networks))
+    within = rotation_angle_deg(truth, np.eye(3)) <= registration.NETWORK_REACH_DEG
+    assert asked == [("draft", 384)] * (1 if within else 2)
+    assert (result.stage, result.verified) == ("features", True)
+    assert rotation_angle_deg(result.rotation, truth) < 0.01
+
+
 def steps_of_auto(source: np.ndarray, target: np.ndarray, threads: int) -> tuple[list, RegistrationResult]:
     """`auto` with a draft that can start a call beside feature matching: the steps run through
     run_blocking, the calls started beside and the draft's other calls, in order."""
