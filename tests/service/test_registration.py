@@ -731,10 +731,12 @@ def test_feature_matching_lost_on_the_checks_subset_matches_again_on_more_points
         assert not (result.verified and rotation_angle_deg(result.rotation, TRUE_ROTATION) < 2.0)
 
 
-def test_feature_matching_lost_on_the_subset_gives_way_to_an_unpinned_answer_on_more_points(monkeypatch):
-    """Where the match on the check's subset is lost (its answer fits nothing) and the one on more
-    points is right but unpinned (two views of a table top), the second answer is feature matching's:
-    it fits and settles, so it ends the search (no model, no rotated start) and is given, flagged."""
+@pytest.mark.parametrize("lost", [True, False], ids=["lost on the subset", "unpinned on the subset"])
+def test_feature_matching_unpinned_on_more_points_or_on_the_subset_ends_the_search(monkeypatch, lost):
+    """Two views of a table top. Where the match on the check's subset is lost (its answer fits nothing)
+    and the one on more points is right but unpinned, the second answer is feature matching's; where
+    the subset's match is already right and unpinned, no second match is made. Either fits and
+    settles, so it ends the search (no model, no rotated start) and is given, flagged."""
     from service import registration
 
     source, view = table_views(np.random.default_rng(4))
@@ -743,8 +745,8 @@ def test_feature_matching_lost_on_the_subset_gives_way_to_an_unpinned_answer_on_
 
     def stand_in(source, target, spacing, spacings):
         matched.append(len(source))
-        lost = len(source) <= registration.CHECK_MAX_POINTS
-        return (euler_to_matrix([0.0, 0.0, 90.0]) @ truth if lost else truth), np.zeros(3)
+        subset = len(source) <= registration.CHECK_MAX_POINTS
+        return (euler_to_matrix([0.0, 0.0, 90.0]) @ truth if lost and subset else truth), np.zeros(3)
 
     monkeypatch.setattr(registration, "feature_match", stand_in)
     asked = []
@@ -754,34 +756,8 @@ def test_feature_matching_lost_on_the_subset_gives_way_to_an_unpinned_answer_on_
     result = asyncio.run(
         register_clouds(source, apply_transform(view, truth, np.zeros(3)), options, settings, networks)
     )
-    assert matched == [registration.CHECK_MAX_POINTS, min(len(source), registration.WIDER_FEATURE_POINTS)]
-    assert (result.stage, result.verified) == ("features", False) and "pin" in result.reason
-    assert rotation_angle_deg(result.rotation, truth) < 0.5 and ("model", 768) not in asked
-
-
-def test_feature_matching_settled_unpinned_on_the_subset_does_not_match_again(monkeypatch):
-    """Where the match on the check's subset of two views of a table top is right but unpinned, and
-    fits enough to end the search, no second match on more points is made: the answer is given,
-    flagged, from the one match."""
-    from service import registration
-
-    source, view = table_views(np.random.default_rng(4))
-    truth = euler_to_matrix([20.0, 5.0, -5.0])
-    matched = []
-
-    def stand_in(source, target, spacing, spacings):
-        matched.append(len(source))
-        return truth, np.zeros(3)
-
-    monkeypatch.setattr(registration, "feature_match", stand_in)
-    asked = []
-    options, settings, _ = pipeline_inputs(None, None, method="auto")
-    draft = Network("object", 384, recording(asked, "draft", euler_to_matrix([90.0, 0.0, 0.0])), "draft")
-    networks = [Network("object", 768, recording(asked, "model"), draft=draft)]
-    result = asyncio.run(
-        register_clouds(source, apply_transform(view, truth, np.zeros(3)), options, settings, networks)
-    )
-    assert matched == [registration.CHECK_MAX_POINTS]
+    wider = [min(len(source), registration.WIDER_FEATURE_POINTS)] if lost else []
+    assert matched == [registration.CHECK_MAX_POINTS, *wider]
     assert (result.stage, result.verified) == ("features", False) and "pin" in result.reason
     assert rotation_angle_deg(result.rotation, truth) < 0.5 and ("model", 768) not in asked
 
