@@ -986,19 +986,19 @@ async def _confirmed_draft(
     The draft is asked for the source as it lies (`first_call`, where that call is under way
     already) and, unless that answer is verified, again for the source turned by the guess where
     that turn is beyond NETWORK_REACH_DEG: the network knows turns of up to 45 deg, the guess any
-    turn. A verified answer is confirmed by the
-    guess within AGREEMENT_DEG of it (where it matches at least UNCORROBORATED_MIN_FITNESS of the
-    source) or, where the guess is too coarse for that (a few degrees off on noisy clouds), by the
-    guess refined and checked. An answer from the guess lies near it by
-    construction, so it stands only if the first answer, refined, does not contradict it (as the
-    model's answer would in the second opinion; one set aside that fits loosely under
-    CONTRADICTING_LOOSE_SHARE as well is not refined for that); where that answer is verified too,
-    the pair is ambiguous (a symmetric shape) and the better fitting of them is the answer, not
-    verified. A first answer that fails the check only on its constraint (unpinned: it fits and has
-    settled, but the clouds would let it slide) stands unverified where the guess agrees with it in
-    turn and translation, or refined is unpinned too and agrees with it: answers near it would fail
-    alike, and one far from it would contradict both methods. An answer more than DRAFT_REACH_DEG
-    from the guess is set aside unrefined: refinement would not bring the two within AGREEMENT_DEG."""
+    turn. A verified answer is confirmed by the guess within AGREEMENT_DEG of it (where it matches
+    at least UNCORROBORATED_MIN_FITNESS of the source) or, where the guess is too coarse for that (a
+    few degrees off on noisy clouds), by the guess refined and checked. An answer from the guess
+    lies near it by construction, so it stands only if the first answer, refined, does not
+    contradict it (as the model's answer would in the second opinion; one set aside that fits
+    loosely under CONTRADICTING_LOOSE_SHARE as well is not refined for that); where that answer is
+    verified too, the pair is ambiguous (a symmetric shape) and the better fitting of them is the
+    answer, not verified. A first answer that fails the check only on its constraint (unpinned: it
+    fits and has settled, but the clouds would let it slide) stands unverified where the guess
+    agrees with it in turn and translation, or refined is unpinned too and agrees with it: answers
+    near it would fail alike, and one far from it would contradict both methods. An answer more than
+    DRAFT_REACH_DEG from the guess is set aside unrefined: refinement would not bring the two within
+    AGREEMENT_DEG."""
     paid: list[dict[str, float]] = []  # the timings of the draft's answers refined and checked
     unrefined: list[Prediction] = []  # the draft's answers set aside unrefined (too far from the guess)
     refined: list[RegistrationResult] = []  # the guess refined and checked, once needed
