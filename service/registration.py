@@ -827,7 +827,7 @@ async def _answer(
             draft, paid, features_answer, unconfirmed = await _confirmed_draft(
                 base, features, first.draft, options, run_blocking, first_call
             )
-            if draft is not None and draft.verified and (options.init is not None or _turned(draft, base)):
+            if draft is not None and draft.verified and (options.init is not None or _turned(draft.rotation, base)):
                 # Asked from the user's guess or at feature matching's turn, either of which may be a
                 # symmetric shape's flipped pose: its half turns judge it. Either may be any pose that
                 # passes the check, and where it matches little of the source and of its surfaces (room
@@ -1070,11 +1070,11 @@ async def _confirmed_draft(
         # Two methods agree on a pose the clouds cannot pin down: any answer near it would fail the
         # check the same way, and one far from it would contradict them both. It stands, not verified.
         return stands(own)
-    start = features.rotation @ prepared.init[:3, :3].T  # the guess's turn of the network's source
-    if rotation_angle_deg(start, np.eye(3)) <= NETWORK_REACH_DEG:
+    if not _turned(features.rotation, prepared):
         # The first call already saw the source within the network's reach of the guess's turn (none at
         # all where feature matching found nothing): turned by the guess, the draft answers the same.
         return set_aside()
+    start = features.rotation @ prepared.init[:3, :3].T  # the guess's turn of the network's source
     prediction, near = await ask(start)
     if not near:
         return set_aside()
@@ -1102,9 +1102,10 @@ def _settled_unpinned(answer: RegistrationResult, prepared: _Prepared) -> bool:
     return answer.unpinned and answer.score.fitness >= bar
 
 
-def _turned(answer: RegistrationResult, prepared: _Prepared) -> bool:
-    """The answer lies beyond the network's reach (NETWORK_REACH_DEG) of the request's `init`."""
-    return bool(rotation_angle_deg(answer.rotation, prepared.init[:3, :3]) > NETWORK_REACH_DEG)
+def _turned(rotation: np.ndarray, prepared: _Prepared) -> bool:
+    """The rotation (an answer's, a guess's) lies beyond the network's reach (NETWORK_REACH_DEG) of the
+    request's `init`."""
+    return bool(rotation_angle_deg(rotation, prepared.init[:3, :3]) > NETWORK_REACH_DEG)
 
 
 def _given(answers: list[RegistrationResult], method: str) -> RegistrationResult:
