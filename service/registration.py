@@ -910,10 +910,10 @@ async def _matched_wider(
     discarded: list[dict[str, float]],
 ) -> tuple[_FeatureGuess, RegistrationResult]:
     """Feature matching's guess and its `answer` or, where that fails the check on a thinned cloud
-    (the matcher saw the check's subset) and has not settled unpinned (the search ends there), the
-    guess of a second match on up to WIDER_FEATURE_POINTS of each cloud and its answer, if verified,
-    or unpinned where the first is not (it fits and settles, the first does not). The answer set
-    aside goes to `discarded`."""
+    (the matcher saw the check's subset) and has not settled unpinned (one that has, a second match
+    never bettered; under `auto` the search ends there), the guess of a second match on up to
+    WIDER_FEATURE_POINTS of each cloud and its answer, if verified, or unpinned where the first is
+    not (it fits and settles, the first does not). The answer set aside goes to `discarded`."""
     settled = answer.verified or _settled_unpinned(answer, prepared)
     if settled or not _thinned(prepared) or WIDER_FEATURE_POINTS <= CHECK_MAX_POINTS:
         return features, answer
