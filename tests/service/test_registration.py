@@ -529,12 +529,28 @@ def table_top(rng: np.random.Generator) -> np.ndarray:
     return np.concatenate([table, box])
 
 
-def table_views(rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
-    """Two views of a large table with a low box on it (thinned for the check), each seeing about 2/3
-    of it: a right answer matches about half the source and fails the check on its constraint."""
+TABLE_VIEWS_TURN = euler_to_matrix([20.0, 5.0, -5.0])
+
+
+def table_views_answer(monkeypatch, match) -> tuple[RegistrationResult, list, np.ndarray]:
+    """`auto` on two views of a large table with a low box on it (thinned for the check), each seeing
+    about 2/3 of it (a right answer matches about half the source and fails the check on its
+    constraint), the second moved by TABLE_VIEWS_TURN, with `match` as feature matching and oracle
+    draft (its answers 90 deg off: far from any guess) and model (`recording`): the answer, the calls
+    asked, the source."""
+    from service import registration
+
+    rng = np.random.default_rng(4)
     table = np.column_stack([rng.uniform(-1.5, 1.5, (24_000, 2)), np.zeros(24_000)])
     scene = np.concatenate([table, rng.uniform([-0.1, -0.1, 0.0], [0.1, 0.1, 0.02], (400, 3))])
-    return scene[scene[:, 0] < 0.5], scene[scene[:, 0] > -0.5]
+    source, view = scene[scene[:, 0] < 0.5], scene[scene[:, 0] > -0.5]
+    monkeypatch.setattr(registration, "feature_match", match)
+    asked = []
+    options, settings, _ = pipeline_inputs(None, None, method="auto")
+    draft = Network("object", 384, recording(asked, "draft", euler_to_matrix([90.0, 0.0, 0.0])), "draft")
+    networks = [Network("object", 768, recording(asked, "model"), draft=draft)]
+    target = apply_transform(view, TABLE_VIEWS_TURN, np.zeros(3))
+    return asyncio.run(register_clouds(source, target, options, settings, networks)), asked, source
 
 
 def tabletop_answer(monkeypatch, guess_turn_deg: float):
@@ -603,17 +619,8 @@ def test_on_a_thinned_scan_an_unpinned_answer_matching_less_also_ends_the_search
     from service import registration
 
     monkeypatch.setattr(registration, "UNPINNED_FITNESS_THINNED", fitness_needed)
-    source, view = table_views(np.random.default_rng(4))
-    truth = euler_to_matrix([20.0, 5.0, -5.0])
-    monkeypatch.setattr(registration, "feature_match", lambda *args: (truth, np.zeros(3)))
-    asked = []
-    options, settings, _ = pipeline_inputs(None, None, method="auto")
-    turn = euler_to_matrix([90.0, 0.0, 0.0])  # every draft answer far from the (right) guess
-    draft = Network("object", 384, recording(asked, "draft", turn), "draft")
-    networks = [Network("object", 768, recording(asked, "model"), draft=draft)]
-    result = asyncio.run(
-        register_clouds(source, apply_transform(view, truth, np.zeros(3)), options, settings, networks)
-    )
+    truth = TABLE_VIEWS_TURN
+    result, asked, _ = table_views_answer(monkeypatch, lambda *args: (truth, np.zeros(3)))
     assert not result.verified and "pin" in result.reason and 0.4 < result.score.fitness < 0.9
     ended = fitness_needed < result.score.fitness
     assert (("model", 768) not in asked) == ended and (len(asked) < len(registration.STARTS)) == ended
@@ -739,8 +746,7 @@ def test_feature_matching_unpinned_on_more_points_or_on_the_subset_ends_the_sear
     settles, so it ends the search (no model, no rotated start) and is given, flagged."""
     from service import registration
 
-    source, view = table_views(np.random.default_rng(4))
-    truth = euler_to_matrix([20.0, 5.0, -5.0])
+    truth = TABLE_VIEWS_TURN
     matched = []
 
     def stand_in(source, target, spacing, spacings):
@@ -748,14 +754,7 @@ def test_feature_matching_unpinned_on_more_points_or_on_the_subset_ends_the_sear
         subset = len(source) <= registration.CHECK_MAX_POINTS
         return (euler_to_matrix([0.0, 0.0, 90.0]) @ truth if lost and subset else truth), np.zeros(3)
 
-    monkeypatch.setattr(registration, "feature_match", stand_in)
-    asked = []
-    options, settings, _ = pipeline_inputs(None, None, method="auto")
-    draft = Network("object", 384, recording(asked, "draft", euler_to_matrix([90.0, 0.0, 0.0])), "draft")
-    networks = [Network("object", 768, recording(asked, "model"), draft=draft)]
-    result = asyncio.run(
-        register_clouds(source, apply_transform(view, truth, np.zeros(3)), options, settings, networks)
-    )
+    result, asked, source = table_views_answer(monkeypatch, stand_in)
     wider = [min(len(source), registration.WIDER_FEATURE_POINTS)] if lost else []
     assert matched == [registration.CHECK_MAX_POINTS, *wider]
     assert (result.stage, result.verified) == ("features", False) and "pin" in result.reason
