@@ -48,7 +48,8 @@ def _example_pair() -> tuple[list[list[float]], list[list[float]], list[list[flo
 
 
 EXAMPLE_SOURCE, EXAMPLE_TARGET, EXAMPLE_TRANSFORM = _example_pair()
-# The shipped network's answer to the first request example, rounded (tests/service/test_accuracy.py).
+# The shipped network's own answer to the first request example, rounded: /v2/models/object/infer's
+# (tests/service/test_accuracy.py). /register's default answer, refined, is the example's motion itself.
 EXAMPLE_ANSWER = [
     [0.8653, -0.5013, -0.0037, 0.2046],
     [0.5012, 0.8653, -0.0053, -0.0911],
@@ -270,20 +271,29 @@ class RegisterResponse(BaseModel):
         json_schema_extra={
             "examples": [
                 {
-                    "rotation": [row[:3] for row in EXAMPLE_ANSWER[:3]],
-                    "translation": [row[3] for row in EXAMPLE_ANSWER[:3]],
-                    "transform": EXAMPLE_ANSWER,
+                    "rotation": [row[:3] for row in EXAMPLE_TRANSFORM[:3]],
+                    "translation": [row[3] for row in EXAMPLE_TRANSFORM[:3]],
+                    "transform": EXAMPLE_TRANSFORM,
                     "fitness": 1.0,
-                    "inlier_rmse": 0.009,
+                    "inlier_rmse": 0.00004,
                     "fitness_threshold": 0.1548,
                     "verified": True,
                     "reason": None,
-                    "stage": "ifnet",
+                    "stage": "draft",
                     "points": {
-                        "source": {"received": 48, "duplicates_removed": 0, "network_points": 768, "upsampled": True},
-                        "target": {"received": 48, "duplicates_removed": 0, "network_points": 768, "upsampled": True},
+                        "source": {"received": 48, "duplicates_removed": 0, "network_points": 384, "upsampled": True},
+                        "target": {"received": 48, "duplicates_removed": 0, "network_points": 384, "upsampled": True},
                     },
-                    "refinement": None,
+                    "refinement": {
+                        "max_distance": 0.2065,
+                        "iterations": 3,
+                        "network_transform": [
+                            [0.8567, -0.5157, 0.0082, 0.1908],
+                            [0.5153, 0.8564, 0.0319, -0.1162],
+                            [-0.0235, -0.0231, 0.9995, 0.0521],
+                            [0.0, 0.0, 0.0, 1.0],
+                        ],
+                    },
                     "model": {
                         "name": "object",
                         "version": "ca91aa32a6d4",
@@ -291,14 +301,15 @@ class RegisterResponse(BaseModel):
                         "file_sha256": "a50a0e58ddcabf7935ff71c8d5a853735eba4d304129312aea2a5794eeb23e52",
                         "preset": "fast",
                         "network_points": 768,
+                        "draft": {"version": "ca91aa32a6d4", "network_points": 384, "blocks": 1},
                     },
                     "timings_ms": {
-                        "read_ms": 0.9,
+                        "read_ms": 0.6,
                         "queue_ms": 0.1,
-                        "inference_ms": 88.7,
-                        "preprocess_ms": 1.1,
-                        "postprocess_ms": 0.6,
-                        "total_ms": 91.0,
+                        "inference_ms": 12.4,
+                        "preprocess_ms": 2.2,
+                        "postprocess_ms": 6.3,
+                        "total_ms": 20.0,
                         "batch_size": 1,
                     },
                 }

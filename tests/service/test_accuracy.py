@@ -120,24 +120,33 @@ async def test_the_trained_network_registers_a_scene_scanned_twice(serve, shippe
 
 
 async def test_the_documented_examples_register_as_documented(serve, shipped_model):
-    """The /register request examples shown in /docs (a small table turned 30 degrees) give the
-    documented answer.
-
-    Stated tolerances: the network alone within 1 degree of the example's motion and of the
-    documented answer's rotation, refined within 0.01 degrees; every point an inlier.
+    """The request examples shown in /docs (a small table turned 30 degrees) give the documented
+    answers. /register's: the response documented for the plain request is the one the default
+    `method` gives (its stage, verdict, point counts, a refinement, the model's draft), its rotation
+    within 0.01 degrees, the example's motion, as is the other example's answer; every point an
+    inlier. /v2 infer's (the network alone): within 1 degree of the documented output and of the motion.
     """
-    from service.schemas import EXAMPLE_TRANSFORM, RegisterResponse
+    from service.schemas import EXAMPLE_TRANSFORM, RegisterResponse, V2InferRequest, V2InferResponse
 
     trained_model_or_skip(shipped_model)
     truth = np.asarray(EXAMPLE_TRANSFORM)[:3, :3]
-    documented = np.asarray(RegisterResponse.model_config["json_schema_extra"]["examples"][0]["rotation"])
-    async with serve(Settings(model_path=shipped_model, warmup=False)) as (app, client):
+    documented = RegisterResponse.model_config["json_schema_extra"]["examples"][0]
+    infer_request = V2InferRequest.model_config["json_schema_extra"]["examples"][0]
+    infer_documented = V2InferResponse.model_config["json_schema_extra"]["examples"][0]["outputs"][0]["data"]
+    async with serve(Settings(model_path=shipped_model, warmup=False, default_method="auto")) as (app, client):
         openapi = (await client.get("/openapi.json")).json()
         shown = openapi["paths"]["/register"]["post"]["requestBody"]["content"]["application/json"]["examples"]
         answers = {name: (await client.post("/register", json=shown[name]["value"])).json() for name in shown}
-    network, refined = (np.asarray(answers[name]["rotation"]) for name in ("plain", "refined"))
+        inferred = (await client.post("/v2/models/object/infer", json=infer_request)).json()
+    plain = answers["plain"]
+    for field in ("stage", "verified", "reason", "points"):
+        assert plain[field] == documented[field], field
+    assert plain["refinement"] is not None and documented["refinement"] is not None
+    assert plain["model"]["draft"] == documented["model"]["draft"]
+    assert rotation_angle_deg(np.asarray(plain["rotation"]), np.asarray(documented["rotation"])) < 0.01
+    for answer in answers.values():
+        assert rotation_angle_deg(np.asarray(answer["rotation"]), truth) < 0.01
+        assert answer["fitness"] == 1.0
+    network = np.asarray(inferred["outputs"][0]["data"], np.float64).reshape(3, 3)
+    assert rotation_angle_deg(network, np.asarray(infer_documented).reshape(3, 3)) < 1.0
     assert rotation_angle_deg(network, truth) < 1.0
-    assert rotation_angle_deg(network, documented) < 1.0
-    assert answers["refined"]["refinement"] is not None
-    assert rotation_angle_deg(refined, truth) < 0.01
-    assert [answer["fitness"] for answer in answers.values()] == [1.0, 1.0]
