@@ -336,7 +336,10 @@ class RegisterResponse(BaseModel):
         "matching."
     )
     points: CloudPointCounts
-    refinement: Refinement | None
+    refinement: Refinement | None = Field(
+        description="The refinement the answer went through; null for a network's answer without `refine` (the "
+        "draft's, the rotated starts' and feature matching's coarse answers are always refined)."
+    )
     model: ModelDescription = Field(
         description="The model whose network gave the answer; for `features`, the request's model (named or default)."
     )
