@@ -171,6 +171,16 @@ def recording(asked: list, name: str, turn=None):
     return predict
 
 
+def auto_with_draft(source: np.ndarray, target: np.ndarray, draft_turn=None) -> tuple[RegistrationResult, list]:
+    """`auto` on the pair with an oracle model and its draft (`recording`; `draft_turn` spoils the
+    draft's answers): the answer, and the calls asked, in order."""
+    asked = []
+    options, settings, _ = pipeline_inputs(None, None, method="auto")
+    draft = Network("object", 384, recording(asked, "draft", draft_turn), "draft")
+    networks = [Network("object", 768, recording(asked, "model"), draft=draft)]
+    return asyncio.run(register_clouds(source, target, options, settings, networks)), asked
+
+
 def test_auto_asks_the_draft_first_and_keeps_its_answer_only_where_feature_matching_agrees(real_scans, monkeypatch):
     """A model with a draft: `auto` asks the draft (at its points, refining its answer even unasked)
     and stops there when feature matching's guess agrees; when it does not (a draft answer far from
@@ -276,15 +286,11 @@ def test_where_the_draft_fails_a_verified_guess_spares_the_models(real_scans, po
     asked."""
     from service import registration
 
-    asked = []
     source = real_scans["kitti_000008_fov"]
     source = source if points is None else subset(source, points)
     target = apply_transform(source, TRUE_ROTATION, TRUE_TRANSLATION)
-    options, settings, _ = pipeline_inputs(None, None, method="auto")
     turn = euler_to_matrix([90.0, 0.0, 0.0])  # every draft answer far from the (right) guess
-    draft = Network("object", 384, recording(asked, "draft", turn), "draft")
-    networks = [Network("object", 768, recording(asked, "model"), draft=draft)]
-    result = asyncio.run(register_clouds(source, target, options, settings, networks))
+    result, asked = auto_with_draft(source, target, turn)
     thinned = len(source) > registration.CHECK_MAX_POINTS
     starts = [] if thinned else [("draft", STARTS_POINTS)] * 24
     assert asked == [("draft", 384), ("draft", 384), *starts]  # as it lies, at the guess's turn, the starts
@@ -304,13 +310,9 @@ def test_the_draft_is_asked_again_only_where_the_guess_turns_the_source_beyond_i
 
     truth = euler_to_matrix(truth_deg)
     monkeypatch.setattr(registration, "feature_match", lambda *args: (truth, TRUE_TRANSLATION))
-    asked = []
     source = real_scans["kitti_000008_fov"]  # thinned for the check: no rotated start asks the draft
     target = apply_transform(source, truth, TRUE_TRANSLATION)
-    options, settings, _ = pipeline_inputs(None, None, method="auto")
-    draft = Network("object", 384, recording(asked, "draft", euler_to_matrix([90.0, 0.0, 0.0])), "draft")
-    networks = [Network("object", 768, recording(asked, "model"), draft=draft)]
-    result = asyncio.run(register_clouds(source, target, options, settings, networks))
+    result, asked = auto_with_draft(source, target, euler_to_matrix([90.0, 0.0, 0.0]))
     within = rotation_angle_deg(truth, np.eye(3)) <= registration.NETWORK_REACH_DEG
     assert asked == [("draft", 384)] * (1 if within else 2)
     assert (result.stage, result.verified) == ("features", True)
@@ -545,12 +547,8 @@ def table_views_answer(monkeypatch, match) -> tuple[RegistrationResult, list, np
     scene = np.concatenate([table, rng.uniform([-0.1, -0.1, 0.0], [0.1, 0.1, 0.02], (400, 3))])
     source, view = scene[scene[:, 0] < 0.5], scene[scene[:, 0] > -0.5]
     monkeypatch.setattr(registration, "feature_match", match)
-    asked = []
-    options, settings, _ = pipeline_inputs(None, None, method="auto")
-    draft = Network("object", 384, recording(asked, "draft", euler_to_matrix([90.0, 0.0, 0.0])), "draft")
-    networks = [Network("object", 768, recording(asked, "model"), draft=draft)]
     target = apply_transform(view, TABLE_VIEWS_TURN, np.zeros(3))
-    return asyncio.run(register_clouds(source, target, options, settings, networks)), asked, source
+    return *auto_with_draft(source, target, euler_to_matrix([90.0, 0.0, 0.0])), source
 
 
 def tabletop_answer(monkeypatch, guess_turn_deg: float):
