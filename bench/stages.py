@@ -8,6 +8,11 @@ Per set: for each step and each network's calls, the pairs that ran it, its medi
 ran, its total and its share of `auto`'s total; the stages that gave the answers; `auto`'s median time
 per pair and, with --peers, the median per-pair ratio to Open3D FPFH + RANSAC + ICP and to
 KISS-Matcher + GICP, interleaved pair by pair. Sets as bench.harness.pair_set names them.
+
+The steps run one after another (bench.ab's networks and `in_turn`): the draft's first call follows
+feature matching, where the service runs it beside feature matching's child process. On 2 CPUs the
+two then slow each other about as much as running them in turn costs, so the ratios to the peers
+come out near the service's over HTTP (docs/benchmarks.md); the steps' own times do not.
 """
 
 import argparse
