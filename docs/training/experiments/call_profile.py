@@ -28,18 +28,21 @@ import torch.nn.functional as F
 from torch import nn
 
 from bench import harness
-from export.onnx_export import RegistrationGraph, export_onnx, metadata_for
+from export.onnx_export import DYNAMIC_AXES, RegistrationGraph, export_onnx, metadata_for
+from model.artifacts import DEFAULT_WEIGHTS
 from model.checkpoint import load_checkpoint
+from service.engine import open_session
 
 OUTPUTS = ["rotation", "translation"]
 
 
-def session(path: Path, threads: int, profile: bool = False) -> ort.InferenceSession:
+def profiled_session(path: Path, threads: int) -> ort.InferenceSession:
+    """A session as service.engine.open_session makes one, recording every node's time."""
     options = ort.SessionOptions()
-    options.intra_op_num_threads, options.inter_op_num_threads = threads, 1
     options.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
-    if profile:
-        options.enable_profiling, options.profile_file_prefix = True, str(Path(tempfile.gettempdir()) / "ort-profile")
+    options.intra_op_num_threads, options.inter_op_num_threads = threads, 1
+    options.add_session_config_entry("session.force_spinning_stop", "1")
+    options.enable_profiling, options.profile_file_prefix = True, str(Path(tempfile.gettempdir()) / "ort-profile")
     return ort.InferenceSession(str(path), options, providers=["CPUExecutionProvider"])
 
 
@@ -49,14 +52,11 @@ def feeds_for(path: Path, pairs: int) -> list[dict]:
 
 
 def profile(path: Path, threads: int, feeds: list[dict], rounds: int) -> None:
-    runner = session(path, threads, profile=True)
-    for feed in feeds:  # first calls out of the profile's averages too (they are few among many)
-        runner.run(OUTPUTS, feed)
-    calls = 0
-    for _ in range(rounds):
+    runner = profiled_session(path, threads)
+    for _ in range(rounds + 1):  # the first round's calls too: a few among many
         for feed in feeds:
             runner.run(OUTPUTS, feed)
-            calls += 1
+    calls = len(feeds) * (rounds + 1)
     events = json.loads(Path(runner.end_profiling()).read_text())
     kernels = [e for e in events if e.get("cat") == "Node" and e["name"].endswith("_kernel_time")]
     by_op, nodes, by_part = Counter(), Counter(), Counter()
@@ -67,7 +67,6 @@ def profile(path: Path, threads: int, feeds: list[dict], rounds: int) -> None:
         name = event["name"].removesuffix("_kernel_time").removeprefix("/model/").removeprefix("block/")
         part = re.sub(r"_\d+$", "", name.split("/")[0]) if "/" in name else "outside the modules"
         by_part[part] += event["dur"]
-    calls += len(feeds)
     total = sum(by_op.values())
     print(f"{path}: {total / calls / 1000:.1f} ms of kernel time per call, {threads} thread(s)")
     for op, spent in by_op.most_common(14):
@@ -85,23 +84,19 @@ def linear_on_rows(self: nn.Linear, x: torch.Tensor) -> torch.Tensor:
 
 def variants(path: Path, folder: Path) -> dict[str, Path]:
     """The file's weights (ifnet-fast.pt at its blocks and point count) exported three other ways."""
-    shipped = session(path, 1)
-    meta = shipped.get_modelmeta().custom_metadata_map
+    meta = open_session(path, 1).get_modelmeta().custom_metadata_map
     config = json.loads(meta["config"])
     model, sha256, preset = load_checkpoint(
-        harness.ROOT / "model/weights/ifnet-fast.pt", config["n_iters"], config["time_steps"], config["num_points"]
+        DEFAULT_WEIGHTS, config["n_iters"], config["time_steps"], config["num_points"]
     )
     if not meta["weights_sha256"].startswith(sha256):
-        raise SystemExit(f"{path} was not exported from model/weights/ifnet-fast.pt")
+        raise SystemExit(f"{path} was not exported from {DEFAULT_WEIGHTS}")
     n = config["num_points"]
     example = (torch.rand(1, n, 3) - 0.5, torch.rand(1, n, 3) - 0.5)
-    batch_only = {name: {0: "batch"} for name in ["source", "target", *OUTPUTS]}
-    dynamic = {"source": {0: "batch", 1: "n_source"}, "target": {0: "batch", 1: "n_target"}} | {
-        name: {0: "batch"} for name in OUTPUTS
-    }
+    batch_only = {name: {0: "batch"} for name in DYNAMIC_AXES}
     files = {}
     for name, axes, rows in [
-        ("linear layers on 2-D rows", dynamic, True),
+        ("linear layers on 2-D rows", DYNAMIC_AXES, True),
         ("point counts fixed", batch_only, False),
         ("point counts and batch fixed", {}, False),
     ]:
@@ -120,7 +115,7 @@ def variants(path: Path, folder: Path) -> dict[str, Path]:
 
 
 def compare(path: Path, files: dict[str, Path], feeds: list[dict], rounds: int) -> None:
-    runners = {"shipped": session(path, 1)} | {name: session(file, 1) for name, file in files.items()}
+    runners = {"shipped": open_session(path, 1)} | {name: open_session(file, 1) for name, file in files.items()}
     expected = [runners["shipped"].run(OUTPUTS, feed) for feed in feeds]
     for name, runner in runners.items():
         got = [runner.run(OUTPUTS, feed) for feed in feeds]
